@@ -1,0 +1,26 @@
+# `make demo` and `make test` create .venv and install on first use.
+PY ?= python3.11
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+.PHONY: demo test lint clean
+
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PY) -m venv $(VENV) || python3 -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+	$(BIN)/pip install -q -e '.[test]'
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/vamppi up --scenario open-field --controller deterministic --clock lockstep --seed 0
+
+test: $(STAMP)
+	$(BIN)/ruff check common services deploy tests
+	$(BIN)/python -m pytest -q tests
+
+lint: $(STAMP)
+	$(BIN)/ruff check common services deploy tests
+
+clean:
+	rm -rf $(VENV) build *.egg-info

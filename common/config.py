@@ -1,0 +1,290 @@
+"""Configuration: one TOML file of defaults (`defaults.toml`), frozen dataclasses.
+
+Every parameter has exactly one default, in `defaults.toml`. The dataclasses
+here declare types and valid ranges only. `load_config` merges, in order: the
+defaults, an optional user TOML file, then `section.key=value` overrides; any
+unknown key, wrong type or out-of-range value raises `ConfigError` naming the
+key, before anything starts.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+
+class ConfigError(ValueError):
+    """A bad configuration value; the message names the key."""
+
+
+def _rng(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False,
+         choices: tuple[str, ...] | None = None) -> Any:
+    return field(metadata={"lo": lo, "hi": hi, "lo_open": lo_open, "choices": choices})
+
+
+@dataclass(frozen=True)
+class EpisodeConfig:
+    scenario: str = _rng(choices=("open-field", "alleyway", "offroad"))
+    seed: int = _rng(0)
+    clock: str = _rng(choices=("lockstep", "realtime"))
+    vehicle: str = _rng()
+    timeout_s: float = _rng(0.0, lo_open=True)
+    goal_radius_m: float = _rng(0.0, lo_open=True)
+    goal_speed_mps: float = _rng(0.0, lo_open=True)
+
+
+@dataclass(frozen=True)
+class VehicleConfig:
+    mass_kg: float = _rng(0.0, lo_open=True)
+    lf_m: float = _rng(0.0, lo_open=True)
+    lr_m: float = _rng(0.0, lo_open=True)
+    track_m: float = _rng(0.0, lo_open=True)
+    pacejka_b: float = _rng(0.0, lo_open=True)
+    pacejka_c: float = _rng(0.0, lo_open=True)
+    pacejka_d: float = _rng(0.0, lo_open=True)
+    pacejka_e: float = _rng()
+    drag_coefficient: float = _rng(0.0)
+    frontal_area_m2: float = _rng(0.0)
+    air_density: float = _rng(0.0)
+    rolling_coefficient: float = _rng(0.0)
+    gravity: float = _rng(0.0, lo_open=True)
+    cg_height_m: float = _rng(0.0)
+    yaw_inertia_kgm2: float = _rng(0.0, lo_open=True)
+    steer_max_rad: float = _rng(0.0, 1.5, lo_open=True)
+    steer_rate_max_radps: float = _rng(0.0, lo_open=True)
+    force_max_n: float = _rng(0.0, lo_open=True)
+    force_min_n: float = _rng(None, 0.0)
+    force_rate_max_nps: float = _rng(0.0, lo_open=True)
+    kinematic_below_mps: float = _rng(0.0)
+    dynamic_above_mps: float = _rng(0.0, lo_open=True)
+    kinematic_tau_s: float = _rng(0.0, lo_open=True)
+    slip_speed_floor_mps: float = _rng(0.0, lo_open=True)
+    brake_speed_eps_mps: float = _rng(0.0, lo_open=True)
+    footprint_length_m: float = _rng(0.0, lo_open=True)
+    footprint_width_m: float = _rng(0.0, lo_open=True)
+
+
+@dataclass(frozen=True)
+class PlantConfig:
+    rate_hz: float = _rng(1.0, 1000.0)
+    cmd_timeout_s: float = _rng(0.0, lo_open=True)
+    obstacle_height_m: float = _rng(0.0, lo_open=True)
+    lockstep_wait_s: float = _rng(0.0, lo_open=True)
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    width_px: int = _rng(2, 4096)
+    height_px: int = _rng(2, 4096)
+    hfov_deg: float = _rng(1.0, 170.0)
+    range_m: float = _rng(0.0, lo_open=True)
+    mount_height_m: float = _rng(0.0, lo_open=True)
+    mount_forward_m: float = _rng()
+    mount_pitch_deg: float = _rng(-80.0, 80.0)
+    rate_hz: float = _rng(0.1, 1000.0)
+    march_step_m: float = _rng(0.0, 1.0, lo_open=True)
+
+
+@dataclass(frozen=True)
+class MapperConfig:
+    size_cells: int = _rng(8, 4096)
+    resolution_m: float = _rng(0.0, lo_open=True)
+    prior_variance: float = _rng(0.0, lo_open=True)
+    known_radius_m: float = _rng(0.0)
+    known_variance: float = _rng(0.0, lo_open=True)
+    noise_sigma0_m: float = _rng(0.0, lo_open=True)
+    noise_k_per_m: float = _rng(0.0)
+    min_variance: float = _rng(0.0, lo_open=True)
+    inpaint_radius_cells: int = _rng(1, 50)
+
+
+@dataclass(frozen=True)
+class PlannerConfig:
+    controller: str = _rng(choices=("deterministic", "prescient"))
+    samples: int = _rng(2, 1_000_000)
+    horizon: int = _rng(40, 1000)
+    dt_s: float = _rng(0.0, lo_open=True)
+    substeps: int = _rng(1, 100)
+    iterations: int = _rng(1, 100)
+    temperature: float = _rng(0.0, lo_open=True)
+    noise_steer_rad: float = _rng(0.0)
+    noise_force_n: float = _rng(0.0)
+    rollouts_published: int = _rng(0, 1000)
+    footprint_points: int = _rng(2, 64)
+    w_time: float = _rng(0.0)
+    w_dynamic: float = _rng(0.0)
+    w_surface: float = _rng(0.0)
+    w_dist: float = _rng(0.0)
+    w_acc: float = _rng(0.0)
+    w_orientation: float = _rng(0.0)
+    activation_distance_m: float = _rng(0.0)
+    time_speed_floor_mps: float = _rng(0.0, lo_open=True)
+    acc_distance_floor_m: float = _rng(0.0, lo_open=True)
+    grad_sq_threshold: float = _rng(0.0)
+    step_sq_threshold: float = _rng(0.0)
+    height_threshold_m: float = _rng(0.0)
+    a_roll_mps2: float = _rng(0.0, lo_open=True)
+    a_max_mps2: float = _rng(0.0, lo_open=True)
+    beta_max_rad: float = _rng(0.0, lo_open=True)
+    v_lat_max_mps: float = _rng(0.0, lo_open=True)
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    mode: str = _rng(choices=("peer", "client", "router"))
+    connect: tuple[str, ...] = _rng()
+    listen: tuple[str, ...] = _rng()
+    multicast_scouting: bool = _rng()
+
+
+@dataclass(frozen=True)
+class Config:
+    episode: EpisodeConfig
+    vehicle: VehicleConfig
+    plant: PlantConfig
+    sensor: SensorConfig
+    mapper: MapperConfig
+    planner: PlannerConfig
+    bus: BusConfig
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        return {s.name: {k: (list(v) if isinstance(v, tuple) else v)
+                         for k, v in dataclasses.asdict(getattr(self, s.name)).items()}
+                for s in dataclasses.fields(self)}
+
+    def replace(self, **overrides: Any) -> Config:
+        """`cfg.replace(**{"planner.samples": 400})`, validated like the CLI."""
+        return config_from_dict(_merge(self.to_dict(), _dotted(overrides)))
+
+
+_SECTION_TYPES = {
+    "episode": EpisodeConfig, "vehicle": VehicleConfig, "plant": PlantConfig,
+    "sensor": SensorConfig, "mapper": MapperConfig, "planner": PlannerConfig, "bus": BusConfig,
+}
+
+
+def default_dict() -> dict[str, dict[str, Any]]:
+    text = resources.files("common").joinpath("defaults.toml").read_text()
+    return tomllib.loads(text)
+
+
+def _merge(base: dict, extra: dict) -> dict:
+    out = {k: dict(v) for k, v in base.items()}
+    for section, values in extra.items():
+        if section not in out:
+            raise ConfigError(f"unknown config section [{section}]")
+        if not isinstance(values, dict):
+            raise ConfigError(f"config section [{section}] must be a table")
+        for key, value in values.items():
+            if key not in out[section]:
+                raise ConfigError(f"unknown config key {section}.{key}")
+            out[section][key] = value
+    return out
+
+
+def _dotted(pairs: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    out: dict[str, dict[str, Any]] = {}
+    for dotted, value in pairs.items():
+        if dotted.count(".") != 1:
+            raise ConfigError(f"override {dotted!r} must look like section.key")
+        section, key = dotted.split(".")
+        out.setdefault(section, {})[key] = value
+    return out
+
+
+def parse_override(text: str) -> tuple[str, Any]:
+    """`planner.samples=400` -> ("planner.samples", 400); the value is read as TOML,
+    and a bare word that is not TOML is taken as a string."""
+    if "=" not in text:
+        raise ConfigError(f"override {text!r} must look like section.key=value")
+    key, raw = text.split("=", 1)
+    try:
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw
+    return key.strip(), value
+
+
+def _check_value(section: str, f: dataclasses.Field, value: Any) -> Any:
+    name = f"{section}.{f.name}"
+    meta = f.metadata
+    typ = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", str(f.type))
+    if typ == "bool":
+        if not isinstance(value, bool):
+            raise ConfigError(f"{name} must be true or false, got {value!r}")
+        return value
+    if typ == "int":
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{name} must be an integer, got {value!r}")
+    elif typ == "float":
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{name} must be a number, got {value!r}")
+        value = float(value)
+        if not math.isfinite(value):
+            raise ConfigError(f"{name} must be finite, got {value!r}")
+    elif typ == "str":
+        if not isinstance(value, str) or not value:
+            raise ConfigError(f"{name} must be a non-empty string, got {value!r}")
+        if meta["choices"] and value not in meta["choices"]:
+            raise ConfigError(f"{name} must be one of {', '.join(meta['choices'])}; got {value!r}")
+        return value
+    elif typ.startswith("tuple"):
+        if isinstance(value, str):
+            value = [value] if value else []
+        if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
+            raise ConfigError(f"{name} must be a list of strings, got {value!r}")
+        return tuple(value)
+    lo, hi = meta["lo"], meta["hi"]
+    if lo is not None and (value < lo or (meta["lo_open"] and value == lo)):
+        raise ConfigError(f"{name} must be {'>' if meta['lo_open'] else '>='} {lo}, got {value!r}")
+    if hi is not None and value > hi:
+        raise ConfigError(f"{name} must be <= {hi}, got {value!r}")
+    return value
+
+
+def config_from_dict(data: dict[str, dict[str, Any]]) -> Config:
+    sections = {}
+    for section, cls in _SECTION_TYPES.items():
+        values = data.get(section, {})
+        kwargs = {}
+        for f in dataclasses.fields(cls):
+            if f.name not in values:
+                raise ConfigError(f"missing config key {section}.{f.name}")
+            kwargs[f.name] = _check_value(section, f, values[f.name])
+        sections[section] = cls(**kwargs)
+    cfg = Config(**sections)
+    _check_cross(cfg)
+    return cfg
+
+
+def _check_cross(cfg: Config) -> None:
+    v, p = cfg.vehicle, cfg.planner
+    if v.dynamic_above_mps <= v.kinematic_below_mps:
+        raise ConfigError("vehicle.dynamic_above_mps must exceed vehicle.kinematic_below_mps")
+    ticks = p.dt_s * cfg.plant.rate_hz
+    if abs(ticks - round(ticks)) > 1e-9:
+        raise ConfigError("planner.dt_s * plant.rate_hz must be a whole number of plant steps")
+    if p.horizon * p.dt_s < 4.0 - 1e-9:
+        raise ConfigError("planner.horizon * planner.dt_s must cover the 4 s of Eq. time_cost")
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | dict[str, Any] | None = None
+                ) -> Config:
+    """Defaults, then the TOML file at `path`, then `section.key=value` overrides."""
+    data = default_dict()
+    if path is not None:
+        try:
+            user = tomllib.loads(Path(path).read_text())
+        except (OSError, tomllib.TOMLDecodeError) as exc:
+            raise ConfigError(f"cannot read config file {path}: {exc}") from exc
+        data = _merge(data, user)
+    if overrides:
+        pairs = overrides if isinstance(overrides, dict) else dict(
+            parse_override(o) for o in overrides)
+        data = _merge(data, _dotted(pairs))
+    return config_from_dict(data)

@@ -1,0 +1,131 @@
+"""Scenarios: deterministic ground-truth heightmaps with start, goal and obstacles.
+
+Each scenario is 80 m x 80 m at 0.2 m (the paper's map, Table II), built from
+its name and a seed: gently rolling bare terrain (a sum of low-frequency waves
+drawn from the seed) plus obstacles (cylinders and boxes). The same name and
+seed always give the same bytes. See docs/scenarios.md.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+SIZE_M = 80.0
+
+
+@dataclass(frozen=True)
+class Obstacle:
+    kind: str                 # "cylinder" | "box"
+    x: float
+    y: float
+    height: float             # above the bare terrain, m
+    radius: float = 0.0       # cylinder
+    half_x: float = 0.0       # box half extents along its own axes
+    half_y: float = 0.0
+    yaw: float = 0.0          # box orientation
+
+
+@dataclass(frozen=True)
+class Pose2:
+    x: float
+    y: float
+    yaw: float
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    seed: int
+    resolution: float
+    origin: tuple[float, float]
+    terrain: np.ndarray       # (H, W) float32 bare ground
+    heightmap: np.ndarray     # (H, W) float32 ground truth: terrain + obstacles
+    start: Pose2
+    goal: Pose2
+    obstacles: tuple[Obstacle, ...]
+    description: str
+
+    def obstacle_mask(self, min_height: float) -> np.ndarray:
+        """Cells whose ground truth stands `min_height` or more above the bare terrain."""
+        return (self.heightmap - self.terrain) >= min_height
+
+
+def _terrain(rng: np.random.Generator, n: int, res: float, amplitude: float) -> np.ndarray:
+    c = (np.arange(n) + 0.5) * res
+    xx, yy = np.meshgrid(c, c, indexing="xy")
+    z = np.zeros((n, n))
+    for _ in range(6):
+        wavelength = rng.uniform(15.0, 60.0)
+        theta = rng.uniform(0.0, math.pi)
+        phase = rng.uniform(0.0, 2 * math.pi)
+        k = 2 * math.pi / wavelength
+        z += np.cos(k * (xx * math.cos(theta) + yy * math.sin(theta)) + phase)
+    return (amplitude * z / 6.0).astype(np.float32)
+
+
+def _render(terrain: np.ndarray, res: float, obstacles: tuple[Obstacle, ...]) -> np.ndarray:
+    n = terrain.shape[0]
+    c = (np.arange(n) + 0.5) * res
+    xx, yy = np.meshgrid(c, c, indexing="xy")
+    extra = np.zeros_like(terrain)
+    for ob in obstacles:
+        if ob.kind == "cylinder":
+            inside = (xx - ob.x) ** 2 + (yy - ob.y) ** 2 <= ob.radius ** 2
+        elif ob.kind == "box":
+            cy, sy = math.cos(ob.yaw), math.sin(ob.yaw)
+            u = (xx - ob.x) * cy + (yy - ob.y) * sy
+            v = -(xx - ob.x) * sy + (yy - ob.y) * cy
+            inside = (np.abs(u) <= ob.half_x) & (np.abs(v) <= ob.half_y)
+        else:
+            raise ValueError(f"unknown obstacle kind {ob.kind!r}")
+        extra = np.where(inside, np.maximum(extra, ob.height), extra)
+    return (terrain + extra).astype(np.float32)
+
+
+def _open_field(rng: np.random.Generator) -> tuple[Pose2, Pose2, list[Obstacle], str]:
+    obstacles = [Obstacle("cylinder", 33.0, 47.0, 1.5, radius=1.2),
+                 Obstacle("cylinder", 42.0, 32.0, 1.5, radius=1.5),
+                 Obstacle("box", 60.0, 52.0, 2.0, half_x=2.0, half_y=1.0, yaw=0.4)]
+    return (Pose2(15.0, 40.0, 0.0), Pose2(55.0, 40.0, 0.0), obstacles,
+            "Rolling field, a 40 m straight run with rocks beside the line: a smoke test.")
+
+
+def _alleyway(rng: np.random.Generator) -> tuple[Pose2, Pose2, list[Obstacle], str]:
+    walls = [Obstacle("box", 40.0, 31.0, 3.0, half_x=32.0, half_y=1.0),
+             Obstacle("box", 40.0, 49.0, 3.0, half_x=32.0, half_y=1.0)]
+    central = [Obstacle("box", 36.0, 40.0, 2.5, half_x=2.5, half_y=3.0)]
+    hidden = [Obstacle("cylinder", 44.0, 34.6, 2.0, radius=1.0),
+              Obstacle("cylinder", 44.0, 45.4, 2.0, radius=1.0)]
+    return (Pose2(12.0, 40.0, 0.0), Pose2(62.0, 40.0, 0.0), walls + central + hidden,
+            "An alley 16 m wide; a large central obstacle hides one obstacle in each "
+            "of the two gaps beside it.")
+
+
+def _offroad(rng: np.random.Generator) -> tuple[Pose2, Pose2, list[Obstacle], str]:
+    trees = [Obstacle("cylinder", x, 25.0, 5.0, radius=0.9) for x in np.arange(6.0, 56.0, 2.2)]
+    field = [Obstacle("cylinder", 52.0, 33.0, 2.0, radius=1.2),
+             Obstacle("cylinder", 47.0, 38.0, 2.0, radius=1.2)]
+    return (Pose2(8.0, 20.0, 0.0), Pose2(45.0, 46.0, math.pi / 2), trees + field,
+            "A road beside a field behind a thin tree line; the vehicle drives to the "
+            "row's end and turns sharply left into the field past obstacles it cannot "
+            "see from the road.")
+
+
+_BUILDERS = {"open-field": _open_field, "alleyway": _alleyway, "offroad": _offroad}
+SCENARIOS = tuple(_BUILDERS)
+
+
+def build_scenario(name: str, seed: int = 0, resolution: float = 0.2,
+                   size_m: float = SIZE_M) -> Scenario:
+    if name not in _BUILDERS:
+        raise ValueError(f"unknown scenario {name!r}; choose one of {', '.join(SCENARIOS)}")
+    n = int(round(size_m / resolution))
+    rng = np.random.default_rng([seed, sum(map(ord, name))])
+    terrain = _terrain(rng, n, resolution, amplitude=0.25)
+    start, goal, obstacles, description = _BUILDERS[name](rng)
+    obs = tuple(obstacles)
+    return Scenario(name, seed, resolution, (0.0, 0.0), terrain, _render(terrain, resolution, obs),
+                    start, goal, obs, description)

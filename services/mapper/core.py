@@ -1,0 +1,176 @@
+"""The mapper's pure core: a stochastic 2.5D elevation map fused from depth images.
+
+Per cell a Gaussian N(mean, variance) of the ground elevation.
+
+- Start: every cell at the prior variance (3.0 in the paper) with the
+  free-space mean (the robot's elevation); cells within `known_radius_m` of the
+  robot at `known_variance` ("no uncertainty near the robot", the paper).
+- Fusion (`fuse_depth`, JAX): each depth pixel is back-projected to a world
+  point; its height is a measurement of its cell with standard deviation
+  sigma0 + k * range^2 (stereo/ToF-like growth with range). All measurements of
+  a frame are fused per cell in information form, which is exactly the
+  sequential scalar Kalman update: 1/var' = 1/var + sum 1/s_i,
+  mean' = var' (mean/var + sum z_i/s_i). Variance never drops below
+  `min_variance`.
+- Inpainting (`inpaint_occluded`, OpenCV Telea): cells inside the camera's
+  field of view (range and angle) that have never been observed, i.e. occluded,
+  get their mean inpainted from their surroundings and keep the prior variance.
+
+See docs/mapper.md for the noise model and the choices.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from functools import partial
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from common.config import Config
+
+
+@dataclass(frozen=True)
+class MapperParams:
+    size: int
+    resolution: float
+    origin: tuple[float, float]
+    prior_variance: float
+    known_radius_m: float
+    known_variance: float
+    sigma0: float
+    k_per_m: float
+    min_variance: float
+    inpaint_radius: int
+    hfov_rad: float
+    range_m: float
+
+    @classmethod
+    def from_config(cls, cfg: Config, origin: tuple[float, float] = (0.0, 0.0)) -> MapperParams:
+        m = cfg.mapper
+        return cls(m.size_cells, m.resolution_m, origin, m.prior_variance, m.known_radius_m,
+                   m.known_variance, m.noise_sigma0_m, m.noise_k_per_m, m.min_variance,
+                   m.inpaint_radius_cells, math.radians(cfg.sensor.hfov_deg), cfg.sensor.range_m)
+
+
+@dataclass(frozen=True)
+class MapState:
+    mean: np.ndarray          # (n, n) float32
+    variance: np.ndarray      # (n, n) float32
+    observed: np.ndarray      # (n, n) bool: measured at least once
+
+
+def cell_centres(p: MapperParams) -> tuple[np.ndarray, np.ndarray]:
+    c = (np.arange(p.size) + 0.5) * p.resolution
+    return np.meshgrid(c + p.origin[0], c + p.origin[1], indexing="xy")
+
+
+def initial_map(p: MapperParams, x: float, y: float, z: float) -> MapState:
+    """Prior map around a robot standing at (x, y) on ground elevation z."""
+    xx, yy = cell_centres(p)
+    near = (xx - x) ** 2 + (yy - y) ** 2 <= p.known_radius_m ** 2
+    mean = np.full((p.size, p.size), z, np.float32)
+    var = np.where(near, p.known_variance, p.prior_variance).astype(np.float32)
+    return MapState(mean, var, near)
+
+
+def measurement_variance(p: MapperParams, rng: jax.Array) -> jax.Array:
+    """Range-dependent measurement variance, (sigma0 + k r^2)^2."""
+    s = p.sigma0 + p.k_per_m * rng * rng
+    return s * s
+
+
+@partial(jax.jit, static_argnames=("p",))
+def _fuse(p: MapperParams, mean, var, observed, depth, intrinsics, cam_position, cam_rotation):
+    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    h, w = depth.shape
+    u, v = jnp.meshgrid(jnp.arange(w, dtype=jnp.float32), jnp.arange(h, dtype=jnp.float32),
+                        indexing="xy")
+    d = depth
+    pc = jnp.stack([(u - cx) / fx * d, (v - cy) / fy * d, d], axis=-1).reshape(-1, 3)
+    pw = pc @ cam_rotation.T + cam_position
+    rng = jnp.linalg.norm(pc, axis=-1)
+    col = jnp.floor((pw[:, 0] - p.origin[0]) / p.resolution).astype(jnp.int32)
+    row = jnp.floor((pw[:, 1] - p.origin[1]) / p.resolution).astype(jnp.int32)
+    valid = (d.reshape(-1) > 0) & (col >= 0) & (col < p.size) & (row >= 0) & (row < p.size)
+    prec = jnp.where(valid, 1.0 / measurement_variance(p, rng), 0.0)
+    flat = jnp.where(valid, row * p.size + col, 0)
+    n = p.size * p.size
+    prec_sum = jnp.zeros(n, jnp.float32).at[flat].add(prec).reshape(p.size, p.size)
+    z_sum = jnp.zeros(n, jnp.float32).at[flat].add(prec * pw[:, 2]).reshape(p.size, p.size)
+    seen = prec_sum > 0
+    post_prec = 1.0 / var + prec_sum
+    new_mean = jnp.where(seen, (mean / var + z_sum) / post_prec, mean)
+    new_var = jnp.where(seen, jnp.maximum(1.0 / post_prec, p.min_variance), var)
+    return new_mean, new_var.astype(jnp.float32), observed | seen
+
+
+def fuse_depth(p: MapperParams, state: MapState, depth: np.ndarray, intrinsics: np.ndarray,
+               cam_position: np.ndarray, cam_rotation: np.ndarray) -> MapState:
+    """Kalman-fuse one depth frame into the map."""
+    mean, var, obs = _fuse(p, jnp.asarray(state.mean), jnp.asarray(state.variance),
+                           jnp.asarray(state.observed), jnp.asarray(depth, jnp.float32),
+                           jnp.asarray(intrinsics, jnp.float32),
+                           jnp.asarray(cam_position, jnp.float32),
+                           jnp.asarray(cam_rotation, jnp.float32))
+    return MapState(np.asarray(mean), np.asarray(var), np.asarray(obs))
+
+
+def fov_mask(p: MapperParams, x: float, y: float, yaw: float) -> tuple[np.ndarray, slice, slice]:
+    """Cells inside the camera's horizontal field of view and range, on the window
+    (rows, cols) around the robot that contains them."""
+    r = int(math.ceil(p.range_m / p.resolution)) + 2
+    ci = int((x - p.origin[0]) / p.resolution)
+    ri = int((y - p.origin[1]) / p.resolution)
+    rows = slice(max(ri - r, 0), min(ri + r + 1, p.size))
+    cols = slice(max(ci - r, 0), min(ci + r + 1, p.size))
+    cy = (np.arange(rows.start, rows.stop) + 0.5) * p.resolution + p.origin[1]
+    cx = (np.arange(cols.start, cols.stop) + 0.5) * p.resolution + p.origin[0]
+    xx, yy = np.meshgrid(cx - x, cy - y, indexing="xy")
+    bearing = np.arctan2(yy, xx) - yaw
+    bearing = (bearing + np.pi) % (2 * np.pi) - np.pi
+    inside = (xx * xx + yy * yy <= p.range_m ** 2) & (np.abs(bearing) <= p.hfov_rad / 2)
+    return inside, rows, cols
+
+
+def inpaint_occluded(p: MapperParams, state: MapState, x: float, y: float, yaw: float
+                     ) -> MapState:
+    """Telea-inpaint the mean of never-observed cells inside the field of view.
+
+    The window is padded by replication (so Telea has context at its edge) and
+    any non-finite value is filled before inpainting (NaNs would leak).
+    Variance is left at the prior: inpainting is a guess, not an observation.
+    """
+    inside, rows, cols = fov_mask(p, x, y, yaw)
+    mask = inside & ~state.observed[rows, cols]
+    if not mask.any():
+        return state
+    window = np.array(state.mean[rows, cols], dtype=np.float32)
+    bad = ~np.isfinite(window)
+    if bad.any():
+        window[bad] = np.nanmedian(np.where(bad, np.nan, window)) if (~bad).any() else 0.0
+    # OpenCV's float32 Telea returns garbage (4.14 and 5.0 alike, docs/mapper.md):
+    # inpaint a uint16 quantisation over the window's own range instead.
+    lo, hi = float(window[~mask].min()) if (~mask).any() else 0.0, float(window.max())
+    scale = max(hi - lo, 1e-6) / 65535.0
+    q = np.clip(np.rint((window - lo) / scale), 0, 65535).astype(np.uint16)
+    pad = p.inpaint_radius + 1
+    src = cv2.copyMakeBorder(q, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
+    m8 = cv2.copyMakeBorder(mask.astype(np.uint8), pad, pad, pad, pad, cv2.BORDER_CONSTANT,
+                            value=0)
+    q_filled = cv2.inpaint(src, m8, p.inpaint_radius, cv2.INPAINT_TELEA)[pad:-pad, pad:-pad]
+    filled = (lo + q_filled.astype(np.float32) * scale).astype(np.float32)
+    mean = state.mean.copy()
+    mean[rows, cols] = np.where(mask, filled, window)
+    return replace(state, mean=mean)
+
+
+def update(p: MapperParams, state: MapState, depth: np.ndarray, intrinsics: np.ndarray,
+           cam_position: np.ndarray, cam_rotation: np.ndarray, base_pose: np.ndarray) -> MapState:
+    """One frame: fuse, then inpaint the occluded part of the field of view."""
+    fused = fuse_depth(p, state, depth, intrinsics, cam_position, cam_rotation)
+    return inpaint_occluded(p, fused, float(base_pose[0]), float(base_pose[1]),
+                            float(base_pose[3]))

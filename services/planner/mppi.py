@@ -1,0 +1,168 @@
+"""MPPI (Williams et al., information-theoretic update) in JAX, pieces kept apart.
+
+One iteration: sample K control sequences around the nominal (sample 0 is the
+nominal itself), roll each out through the plant's own model (`rollout`,
+written for one sample and vmapped), let the controller supply the variance
+each rollout meets (`variance_for`, where VA-MPPI's visibility-aware update
+slots in), price every rollout (`costs.rollout_cost`), weight by
+exp(-(J - J_min) / lambda) and move the nominal by the weighted noise.
+
+    step(params, state, inputs) -> (state, outputs)
+
+Randomness is state: the PRNG key lives in `PlannerState` and is split each
+iteration, so a run is reproducible from its seed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache, partial
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from common.config import Config, VehicleConfig
+from services.plant.dynamics import ControlLimits, clamp_control, derivatives, integrate
+from services.planner.costs import TERMS, CostParams, MapView, rollout_cost
+
+
+@dataclass(frozen=True)
+class PlannerParams:
+    controller: str                    # deterministic | prescient
+    samples: int                       # K (J in the paper)
+    horizon: int                       # N
+    dt: float
+    substeps: int
+    iterations: int
+    temperature: float                 # lambda
+    noise_std: tuple[float, float]     # delta, f_xt
+    rollouts_published: int
+    vehicle: VehicleConfig
+    limits: ControlLimits
+    cost: CostParams
+
+    @classmethod
+    def from_config(cls, cfg: Config) -> PlannerParams:
+        p = cfg.planner
+        return cls(p.controller, p.samples, p.horizon, p.dt_s, p.substeps, p.iterations,
+                   p.temperature, (p.noise_steer_rad, p.noise_force_n),
+                   min(p.rollouts_published, p.samples), cfg.vehicle,
+                   ControlLimits.from_config(cfg.vehicle), CostParams.from_config(cfg))
+
+
+class PlannerState(NamedTuple):
+    nominal: jax.Array                 # (N, 2) float32, the mean control sequence
+    key: jax.Array                     # PRNG key
+
+
+class SolveOutput(NamedTuple):
+    controls: jax.Array                # (N, 2) the nominal, as the plant would apply it
+    optimal: jax.Array                 # (N+1, 6) its rollout
+    terms: jax.Array                   # (6,) its cost terms, costs.TERMS
+    rollouts_xy: jax.Array             # (R, N+1, 2) some sampled rollouts
+    rollout_costs: jax.Array           # (R,)
+    cost_min: jax.Array
+    cost_mean: jax.Array
+
+
+def initial_state(params: PlannerParams, seed: int) -> PlannerState:
+    return PlannerState(jnp.zeros((params.horizon, 2), jnp.float32), jax.random.PRNGKey(seed))
+
+
+def advance(state: PlannerState, ticks: int) -> PlannerState:
+    """Warm start: shift the nominal by `ticks` steps, repeating the last control."""
+    if ticks <= 0:
+        return state
+    nom = state.nominal
+    ticks = min(ticks, nom.shape[0])
+    shifted = jnp.concatenate([nom[ticks:], jnp.repeat(nom[-1:], ticks, axis=0)])
+    return state._replace(nominal=shifted)
+
+
+def rollout(params: PlannerParams, x0: jax.Array, u_prev: jax.Array, controls: jax.Array
+            ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """One sample: states (N+1, 6), applied controls (N, 2), dx/dt at each step (N, 6)."""
+    def body(carry, v):
+        x, u_last = carry
+        u = clamp_control(v, u_last, params.limits, params.dt, jnp)
+        xdot = derivatives(params.vehicle, x, u, jnp)
+        x_next = integrate(params.vehicle, x, u, params.dt, params.substeps, jnp)
+        return (x_next, u), (x_next, u, xdot)
+
+    _, (xs, us, xdots) = jax.lax.scan(body, (x0, u_prev), controls)
+    return jnp.concatenate([x0[None], xs]), us, xdots
+
+
+def variance_for(params: PlannerParams, m: MapView, states: jax.Array):
+    """The variance a rollout meets, as a lookup (row, col) -> variance.
+
+    deterministic plans on the mean map and prescient on the true map: both with
+    zero variance. (VA-MPPI's visibility-aware update returns the map variance
+    decayed by what this rollout would have seen.)
+    """
+    return lambda row, col: jnp.zeros(row.shape, jnp.float32)
+
+
+def _iteration(params: PlannerParams, state: PlannerState, x0, u_prev, goal, m: MapView):
+    key, sub = jax.random.split(state.key)
+    k, n = params.samples, params.horizon
+    std = jnp.asarray(params.noise_std, jnp.float32)
+    eps = jax.random.normal(sub, (k, n, 2), jnp.float32) * std
+    eps = eps.at[0].set(0.0)                          # sample 0: the nominal itself
+    candidates = state.nominal[None] + eps
+    states, applied, xdots = jax.vmap(rollout, in_axes=(None, None, None, 0))(
+        params, x0, u_prev, candidates)
+
+    def price(s, xd):
+        return rollout_cost(params.cost, s, xd, goal, m, variance_for(params, m, s))
+
+    terms = jax.vmap(price)(states, xdots)
+    cost = jnp.sum(terms, axis=-1)
+    cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)
+    j_min = jnp.min(cost)
+    w = jnp.exp(-(cost - j_min) / params.temperature)
+    w = w / jnp.sum(w)
+    nominal = state.nominal + jnp.einsum("k,kni->ni", w, applied - state.nominal[None])
+    r = params.rollouts_published
+    info = (states[:r, :, 3:5], cost[:r], j_min, jnp.mean(jnp.where(jnp.isfinite(cost), cost, 0)))
+    return PlannerState(nominal, key), info
+
+
+def _solve(params: PlannerParams, state: PlannerState, x0, u_prev, goal, mean, variance,
+           origin, resolution) -> tuple[PlannerState, SolveOutput]:
+    m = MapView(mean, variance, origin, resolution)
+    info = None
+    for _ in range(params.iterations):
+        state, info = _iteration(params, state, x0, u_prev, goal, m)
+    states, applied, xdots = rollout(params, x0, u_prev, state.nominal)
+    terms = rollout_cost(params.cost, states, xdots, goal, m, variance_for(params, m, states))
+    xy, costs, j_min, j_mean = info
+    state = state._replace(nominal=applied)
+    return state, SolveOutput(applied, states, terms, xy, costs, j_min, j_mean)
+
+
+@lru_cache(maxsize=8)
+def solver(params: PlannerParams):
+    """The jitted solve for these (static) parameters."""
+    return jax.jit(partial(_solve, params), static_argnames=("resolution",))
+
+
+def solve(params: PlannerParams, state: PlannerState, x0: Any, u_prev: Any, goal: Any,
+          mean: Any, variance: Any, origin: Any, resolution: float
+          ) -> tuple[PlannerState, SolveOutput]:
+    """One control tick: `iterations` MPPI updates from the current nominal.
+
+    x0 (6,), u_prev (2,) the control applied now, goal (3,) = (x, y, yaw),
+    mean/variance (H, W) float32 map, origin (2,), resolution (m).
+    """
+    f = solver(params)
+    return f(state, jnp.asarray(x0, jnp.float32), jnp.asarray(u_prev, jnp.float32),
+             jnp.asarray(goal, jnp.float32), jnp.asarray(mean, jnp.float32),
+             jnp.asarray(variance, jnp.float32), jnp.asarray(origin, jnp.float32),
+             resolution=float(resolution))
+
+
+def term_dict(terms: Any) -> dict[str, float]:
+    return {name: float(v) for name, v in zip(TERMS, np.asarray(terms), strict=True)}

@@ -1,0 +1,157 @@
+"""The paper's 3-DOF nonlinear bicycle model (Eq. dynamics), written once.
+
+State x = [V, v, r, X, Y, Psi] (longitudinal and lateral body velocity, yaw
+rate, world position, heading); control u = [delta, f_xt] (road-wheel steering
+angle, longitudinal force at the CG). Aerodynamic drag, rolling resistance,
+longitudinal and lateral load transfer, Ackermann steering and Pacejka lateral
+tire forces (Table I). The same functions run on NumPy float64 (the plant and
+the test references) and on jax.numpy float32 (the planner's prediction
+model): pass `xp`.
+
+What the paper leaves open, and how we close it (docs/dynamics.md):
+- f_xt >= 0 drives; f_xt < 0 brakes, opposing motion and fading to zero at
+  standstill (no reverse gear), so a braked vehicle stops and stays stopped.
+- Rolling resistance fades the same way (tanh(V / eps)), drag is V|V|.
+- Below `kinematic_below_mps` the lateral dynamics are those of the kinematic
+  bicycle (v, r relax to their kinematic values), above `dynamic_above_mps`
+  pure Pacejka, blended linearly between: the slip-angle model is singular and
+  stiff as V -> 0, which the paper names as the cause of its remaining failures.
+- Load transfer uses the quasi-static accelerations (no algebraic loop).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+from typing import Any
+
+import numpy as np
+
+from common.config import VehicleConfig
+
+
+class S(IntEnum):
+    """State indices."""
+    V = 0
+    v = 1
+    r = 2
+    X = 3
+    Y = 4
+    PSI = 5
+
+
+class U(IntEnum):
+    """Control indices."""
+    DELTA = 0
+    FXT = 1
+
+
+@dataclass(frozen=True)
+class ControlLimits:
+    lo: tuple[float, float]       # delta, f_xt
+    hi: tuple[float, float]
+    rate: tuple[float, float]     # per second
+
+    @classmethod
+    def from_config(cls, v: VehicleConfig) -> ControlLimits:
+        return cls((-v.steer_max_rad, v.force_min_n), (v.steer_max_rad, v.force_max_n),
+                   (v.steer_rate_max_radps, v.force_rate_max_nps))
+
+
+def clamp_control(u: Any, u_prev: Any, limits: ControlLimits, dt: float, xp: Any = np) -> Any:
+    """The control actually applied: within bounds and within rate * dt of `u_prev`."""
+    lo, hi = xp.asarray(limits.lo), xp.asarray(limits.hi)
+    step = xp.asarray(limits.rate) * dt
+    return xp.clip(xp.clip(u, u_prev - step, u_prev + step), lo, hi)
+
+
+def tire_lateral_force(alpha: Any, fz: Any, p: VehicleConfig, xp: Any = np) -> Any:
+    """Pacejka magic formula, F_y = D Fz sin(C atan(B a - E (B a - atan(B a))))."""
+    ba = p.pacejka_b * alpha
+    return p.pacejka_d * fz * xp.sin(p.pacejka_c * xp.arctan(ba - p.pacejka_e * (ba - xp.arctan(ba))))
+
+
+def derivatives(p: VehicleConfig, x: Any, u: Any, xp: Any = np) -> Any:
+    """dx/dt for states (..., 6) and controls (..., 2)."""
+    V, v, r, psi = x[..., S.V], x[..., S.v], x[..., S.r], x[..., S.PSI]
+    delta, f = u[..., U.DELTA], u[..., U.FXT]
+    m, g, L, h, tr = p.mass_kg, p.gravity, p.lf_m + p.lr_m, p.cg_height_m, p.track_m
+
+    # longitudinal: drive, brake (opposes motion, fades at standstill), drag, rolling
+    fade = xp.tanh(V / p.brake_speed_eps_mps)
+    f_long = xp.maximum(f, 0.0) + xp.minimum(f, 0.0) * fade
+    drag = 0.5 * p.air_density * p.drag_coefficient * p.frontal_area_m2 * V * xp.abs(V)
+    rolling = m * g * p.rolling_coefficient * fade
+    ax = (f_long - drag - rolling) / m
+
+    # quasi-static load transfer (ax without the v r term; ay ~ V r)
+    ay = V * r
+    fz_front = m * g * p.lr_m / L - m * ax * h / L
+    fz_rear = m * g * p.lf_m / L + m * ax * h / L
+    dfz_front = m * ay * h / tr * (p.lr_m / L)
+    dfz_rear = m * ay * h / tr * (p.lf_m / L)
+    fz_fl = xp.maximum(fz_front / 2 - dfz_front, 0.0)
+    fz_fr = xp.maximum(fz_front / 2 + dfz_front, 0.0)
+    fz_rl = xp.maximum(fz_rear / 2 - dfz_rear, 0.0)
+    fz_rr = xp.maximum(fz_rear / 2 + dfz_rear, 0.0)
+
+    # Ackermann: the inner front wheel turns more
+    tan_d = xp.tan(delta)
+    d_left = xp.arctan2(L * tan_d, L - 0.5 * tr * tan_d)
+    d_right = xp.arctan2(L * tan_d, L + 0.5 * tr * tan_d)
+
+    # slip angles at each wheel (wheel-speed floor keeps them defined at V -> 0)
+    floor = p.slip_speed_floor_mps
+    u_left = xp.maximum(V - 0.5 * tr * r, floor)
+    u_right = xp.maximum(V + 0.5 * tr * r, floor)
+    a_fl = d_left - xp.arctan2(v + p.lf_m * r, u_left)
+    a_fr = d_right - xp.arctan2(v + p.lf_m * r, u_right)
+    a_rl = -xp.arctan2(v - p.lr_m * r, u_left)
+    a_rr = -xp.arctan2(v - p.lr_m * r, u_right)
+    f_fl = tire_lateral_force(a_fl, fz_fl, p, xp) * xp.cos(d_left)
+    f_fr = tire_lateral_force(a_fr, fz_fr, p, xp) * xp.cos(d_right)
+    f_rl = tire_lateral_force(a_rl, fz_rl, p, xp)
+    f_rr = tire_lateral_force(a_rr, fz_rr, p, xp)
+
+    v_dot_dyn = (f_fl + f_fr + f_rl + f_rr) / m - V * r
+    r_dot_dyn = (p.lf_m * (f_fl + f_fr) - p.lr_m * (f_rl + f_rr)) / p.yaw_inertia_kgm2
+
+    # kinematic bicycle at low speed: v, r relax toward V lr tan(delta)/L, V tan(delta)/L
+    r_kin = V * tan_d / L
+    v_kin = r_kin * p.lr_m
+    v_dot_kin = (v_kin - v) / p.kinematic_tau_s
+    r_dot_kin = (r_kin - r) / p.kinematic_tau_s
+    w = xp.clip((V - p.kinematic_below_mps) / (p.dynamic_above_mps - p.kinematic_below_mps),
+                0.0, 1.0)
+
+    V_dot = ax + v * r
+    v_dot = w * v_dot_dyn + (1 - w) * v_dot_kin
+    r_dot = w * r_dot_dyn + (1 - w) * r_dot_kin
+    X_dot = V * xp.cos(psi) - v * xp.sin(psi)
+    Y_dot = V * xp.sin(psi) + v * xp.cos(psi)
+    return xp.stack([V_dot, v_dot, r_dot, X_dot, Y_dot, r], axis=-1)
+
+
+def rk4_step(p: VehicleConfig, x: Any, u: Any, dt: float, xp: Any = np) -> Any:
+    """One classical Runge-Kutta step with the control held."""
+    k1 = derivatives(p, x, u, xp)
+    k2 = derivatives(p, x + 0.5 * dt * k1, u, xp)
+    k3 = derivatives(p, x + 0.5 * dt * k2, u, xp)
+    k4 = derivatives(p, x + dt * k3, u, xp)
+    return x + (dt / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
+
+
+def integrate(p: VehicleConfig, x: Any, u: Any, dt: float, substeps: int, xp: Any = np) -> Any:
+    """Advance by `dt` in `substeps` RK4 steps, control held (heading left unwrapped)."""
+    h = dt / substeps
+    for _ in range(substeps):
+        x = rk4_step(p, x, u, h, xp)
+    return x
+
+
+def accelerations(x: Any, xdot: Any, xp: Any = np) -> tuple[Any, Any, Any]:
+    """(longitudinal, lateral, total) acceleration in the body frame from x and dx/dt."""
+    V, v, r = x[..., S.V], x[..., S.v], x[..., S.r]
+    a_x = xdot[..., S.V] - v * r
+    a_y = xdot[..., S.v] + V * r
+    return a_x, a_y, xp.sqrt(a_x * a_x + a_y * a_y)
