@@ -266,6 +266,11 @@ def _check_cross(cfg: Config) -> None:
     v, p = cfg.vehicle, cfg.planner
     if v.dynamic_above_mps <= v.kinematic_below_mps:
         raise ConfigError("vehicle.dynamic_above_mps must exceed vehicle.kinematic_below_mps")
+    b = cfg.bus
+    if b.mode == "peer" and not b.listen and not b.multicast_scouting:
+        raise ConfigError("bus.mode=peer needs bus.listen endpoints (or multicast scouting): a "
+                          "peer that does not listen cannot reach other peers through a router; "
+                          "use bus.mode=client to go through the router")
     ticks = p.dt_s * cfg.plant.rate_hz
     if abs(ticks - round(ticks)) > 1e-9:
         raise ConfigError("planner.dt_s * plant.rate_hz must be a whole number of plant steps")

@@ -1,0 +1,158 @@
+"""`vamppi`: the command line.
+
+    vamppi up --scenario NAME [--controller C] [--samples K] [--clock lockstep|realtime] [--seed S]
+    vamppi service NAME [--connect tcp/HOST:PORT] [--listen EP] [--mode peer|client|router]
+    vamppi run ...           one episode in this process, no bus (the lockstep reference)
+    vamppi config ...        print the effective configuration as JSON
+
+Every command takes `--config FILE` and `--set section.key=value` (repeatable).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import sys
+import threading
+from typing import Any
+
+from common.config import Config, ConfigError, load_config
+
+
+def add_config_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("configuration")
+    g.add_argument("--config", help="TOML file merged over the defaults")
+    g.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="override one parameter (repeatable)")
+    g.add_argument("--scenario", help="episode.scenario")
+    g.add_argument("--controller", help="planner.controller")
+    g.add_argument("--samples", type=int, help="planner.samples (K)")
+    g.add_argument("--clock", choices=("lockstep", "realtime"), help="episode.clock")
+    g.add_argument("--seed", type=int, help="episode.seed")
+    g.add_argument("--vehicle", help="episode.vehicle")
+
+
+def add_bus_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("bus (zenoh)")
+    g.add_argument("--mode", choices=("peer", "client", "router"), help="bus.mode")
+    g.add_argument("--connect", action="append", metavar="ENDPOINT", help="bus.connect")
+    g.add_argument("--listen", action="append", metavar="ENDPOINT", help="bus.listen")
+
+
+def overrides_from_args(args: argparse.Namespace) -> list[str]:
+    """The --set list plus the shorthand flags, as section.key=value strings."""
+    out = list(args.set)
+    for flag, key in (("scenario", "episode.scenario"), ("controller", "planner.controller"),
+                      ("samples", "planner.samples"), ("clock", "episode.clock"),
+                      ("seed", "episode.seed"), ("vehicle", "episode.vehicle"),
+                      ("mode", "bus.mode")):
+        v = getattr(args, flag, None)
+        if v is not None:
+            out.append(f"{key}={json.dumps(v)}")
+    for flag in ("connect", "listen"):
+        v = getattr(args, flag, None)
+        if v:
+            out.append(f"bus.{flag}={json.dumps(v)}")
+    return out
+
+
+def config_from_args(args: argparse.Namespace) -> Config:
+    return load_config(args.config, overrides_from_args(args))
+
+
+def _setup_logging(verbose: bool) -> None:
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, stream=sys.stderr,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    logging.getLogger("jax._src.xla_bridge").setLevel(logging.WARNING)
+
+
+SERVICE_MAINS = {
+    "plant": "services.plant.node",
+    "sensor": "services.sensor.node",
+    "mapper": "services.mapper.node",
+    "planner": "services.planner.node",
+}
+
+
+def cmd_service(args: argparse.Namespace, cfg: Config) -> int:
+    import importlib
+    module = importlib.import_module(SERVICE_MAINS[args.name])
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    module.main(cfg, args.instance, stop)
+    return 0
+
+
+def cmd_run(args: argparse.Namespace, cfg: Config) -> int:
+    from deploy.runner import run_episode
+    result = run_episode(cfg)
+    print(json.dumps(result.summary(cfg)), flush=True)
+    return 0 if result.outcome == "success" else 1
+
+
+def cmd_config(args: argparse.Namespace, cfg: Config) -> int:
+    print(json.dumps(cfg.to_dict(), indent=2))
+    return 0
+
+
+def _interrupt(*_: object) -> None:
+    raise KeyboardInterrupt
+
+
+def cmd_up(args: argparse.Namespace, cfg: Config) -> int:
+    from deploy.launch import up
+    signal.signal(signal.SIGTERM, _interrupt)     # SIGTERM unwinds like Ctrl-C: children stop
+    try:
+        summary = up(cfg, overrides_from_args(args), args.config, timeout_s=args.wall_timeout)
+    except KeyboardInterrupt:
+        print("vamppi up: interrupted, every service stopped", file=sys.stderr)
+        return 130
+    print(json.dumps(summary), flush=True)
+    return 0 if summary["outcome"] == "success" else 1
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="vamppi", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("-v", "--verbose", action="store_true")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("up", help="embedded router + every service as a process; one episode")
+    add_config_args(p)
+    p.add_argument("--wall-timeout", type=float, default=900.0,
+                   help="give up after this many wall-clock seconds")
+    p.set_defaults(func=cmd_up)
+
+    p = sub.add_parser("service", help="run one service on its own")
+    p.add_argument("name", choices=sorted(SERVICE_MAINS))
+    p.add_argument("--instance", default="0", help="instance id (liveliness, health)")
+    add_config_args(p)
+    add_bus_args(p)
+    p.set_defaults(func=cmd_service)
+
+    p = sub.add_parser("run", help="one lockstep episode in-process, without the bus")
+    add_config_args(p)
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("config", help="print the effective configuration")
+    add_config_args(p)
+    p.set_defaults(func=cmd_config)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> Any:
+    args = build_parser().parse_args(argv)
+    _setup_logging(args.verbose)
+    try:
+        cfg = config_from_args(args)
+    except ConfigError as exc:
+        print(f"vamppi: bad configuration: {exc}", file=sys.stderr)
+        return 2
+    return args.func(args, cfg)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

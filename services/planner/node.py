@@ -1,0 +1,92 @@
+"""Planner service: one MPPI solve per control tick, publishes cmd, plan and stats.
+
+lockstep: each map is matched with the state of the same stamp; one solve per
+map. realtime: one solve per new control tick of the newest state, on the
+newest map.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import numpy as np
+
+from common.bus import Node, ref_of
+from common.config import Config
+from common.messages import Cmd, Map, Plan, State, Stats
+from common.scenarios import build_scenario
+from services.planner import mppi
+from services.planner.costs import TERMS
+
+log = logging.getLogger(__name__)
+
+
+def main(cfg: Config, instance: str = "0", stop: threading.Event | None = None) -> None:
+    stop = stop or threading.Event()
+    params = mppi.PlannerParams.from_config(cfg)
+    scn = build_scenario(cfg.episode.scenario, cfg.episode.seed, cfg.mapper.resolution_m)
+    goal = np.array([scn.goal.x, scn.goal.y, scn.goal.yaw])
+    truth = scn.heightmap if params.controller == "prescient" else None
+    lockstep = cfg.episode.clock == "lockstep"
+    dt = params.dt
+    with Node(cfg.bus, cfg.episode.vehicle, "planner", instance, cfg.to_dict()) as node:
+        states = node.subscribe("state", State, maxlen=4096 if lockstep else 1)
+        maps = node.subscribe("map", Map, maxlen=64 if lockstep else 1)
+        cmd_pub = node.publisher("cmd", Cmd, express=True)
+        plan_pub = node.publisher("plan", Plan)
+        stats_pub = node.publisher("stats", Stats)
+        qs = mppi.initial_state(params, cfg.episode.seed)
+        n = cfg.mapper.size_cells
+        mppi.solve(params, qs, np.zeros(6), np.zeros(2), goal, np.zeros((n, n), np.float32),
+                   np.zeros((n, n), np.float32), np.zeros(2), cfg.mapper.resolution_m)  # JIT
+        node.ready()
+        last_t: float | None = None
+        while not stop.is_set():
+            if lockstep:
+                m = maps.get(timeout=0.2)
+                if m is None:
+                    continue
+                st = states.get_where(lambda s, t=m.header.stamp: abs(s.header.stamp - t) < 1e-6,
+                                      timeout=30.0)
+                if st is None:
+                    log.warning("no state for map stamp %.2f", m.header.stamp)
+                    continue
+            else:
+                st = states.get(timeout=0.2)
+                m = maps.peek_latest()
+                if st is None or m is None:
+                    continue
+                if last_t is not None and st.header.stamp < last_t + dt - 1e-6:
+                    continue
+            t = st.header.stamp
+            if last_t is None or t < last_t - 1e-9:        # first tick, or a new episode
+                qs = mppi.initial_state(params, cfg.episode.seed)
+            else:
+                qs = mppi.advance(qs, int(round((t - last_t) / dt)))
+            last_t = t
+            mean, var = (truth, np.zeros_like(truth)) if truth is not None else (m.mean,
+                                                                               m.variance)
+            t_solve = time.perf_counter()
+            qs, out = mppi.solve(params, qs, st.x, st.u_applied, goal, mean, var, m.origin,
+                                 m.resolution)
+            controls = np.asarray(out.controls)
+            solve_ms = (time.perf_counter() - t_solve) * 1e3
+            inputs = [ref_of(states.key, st), ref_of(maps.key, m)]
+            cmd_pub.publish(t, inputs, t0=t, dt=dt, controls=controls)
+            plan_pub.publish(t, inputs, controller=params.controller,
+                             optimal=np.asarray(out.optimal), nominal=controls,
+                             rollouts=np.asarray(out.rollouts_xy),
+                             rollout_costs=np.nan_to_num(np.asarray(out.rollout_costs, np.float32),
+                                                           posinf=np.finfo(np.float32).max))
+            stats_pub.publish(t, inputs, controller=params.controller, samples=params.samples,
+                              solve_ms=solve_ms, cost_min=_finite(out.cost_min),
+                              cost_mean=_finite(out.cost_mean),
+                              terms=dict(zip(TERMS, map(float, np.asarray(out.terms)),
+                                             strict=True)))
+
+
+def _finite(v) -> float:
+    """A cost for the stats message: inf (every rollout invalid) becomes float max."""
+    return float(np.nan_to_num(float(v), posinf=np.finfo(np.float32).max))
