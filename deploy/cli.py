@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import signal
 import sys
 import threading
@@ -76,12 +77,27 @@ SERVICE_MAINS = {
 }
 
 
+def _stop_when_orphaned(stop: threading.Event) -> None:
+    """Set `stop` if the parent process goes away (a launcher killed with SIGKILL)."""
+    parent = os.getppid()
+
+    def watch() -> None:
+        while not stop.wait(0.5):
+            if os.getppid() != parent:
+                logging.getLogger(__name__).warning("parent process gone: stopping")
+                stop.set()
+
+    threading.Thread(target=watch, daemon=True, name="parent-watch").start()
+
+
 def cmd_service(args: argparse.Namespace, cfg: Config) -> int:
     import importlib
     module = importlib.import_module(SERVICE_MAINS[args.name])
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
+    if args.stop_with_parent:
+        _stop_when_orphaned(stop)
     module.main(cfg, args.instance, stop)
     return 0
 
@@ -129,6 +145,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("service", help="run one service on its own")
     p.add_argument("name", choices=sorted(SERVICE_MAINS))
     p.add_argument("--instance", default="0", help="instance id (liveliness, health)")
+    p.add_argument("--stop-with-parent", action="store_true",
+                   help="stop when the parent process dies (set by vamppi up)")
     add_config_args(p)
     add_bus_args(p)
     p.set_defaults(func=cmd_service)

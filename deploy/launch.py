@@ -2,7 +2,8 @@
 
 The launcher opens a router session on a free loopback port, starts plant,
 sensor, mapper and planner as `vamppi service NAME --connect tcp/127.0.0.1:PORT`
-subprocesses (each dies with the launcher: PR_SET_PDEATHSIG), waits until every
+subprocesses (each stops when its parent dies: `vamppi service` watches its
+parent), waits until every
 service's liveliness token is up, follows the plant's events until the episode's
 outcome, then stops every child (SIGTERM, then SIGKILL after a grace period).
 """
@@ -10,7 +11,6 @@ outcome, then stops every child (SIGTERM, then SIGKILL after a grace period).
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import json
 import logging
 import os
@@ -19,7 +19,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 from common.bus import SERVICES, Inbox, alive_instances, open_session, topic_key
@@ -41,17 +41,11 @@ def router_config(port: int) -> BusConfig:
                      multicast_scouting=False)
 
 
-def _die_with_parent() -> None:
-    try:
-        ctypes.CDLL("libc.so.6").prctl(1, signal.SIGTERM)   # PR_SET_PDEATHSIG
-    except OSError:
-        pass
-
-
 def spawn_service(name: str, endpoint: str, overrides: list[str], config_path: str | None,
                   instance: str = "0", env: dict[str, str] | None = None) -> subprocess.Popen:
     """`vamppi service NAME` as a subprocess, a client of the router at `endpoint`."""
-    cmd = [sys.executable, "-m", "deploy.cli", "service", name, "--instance", instance]
+    cmd = [sys.executable, "-m", "deploy.cli", "service", name, "--instance", instance,
+           "--stop-with-parent"]
     if config_path:
         cmd += ["--config", config_path]
     for o in overrides:
@@ -59,7 +53,7 @@ def spawn_service(name: str, endpoint: str, overrides: list[str], config_path: s
     cmd += ["--set", 'bus.mode="client"', "--set", f"bus.connect={json.dumps([endpoint])}",
             "--set", "bus.listen=[]"]
     return subprocess.Popen(cmd, stdout=sys.stderr, stderr=sys.stderr, stdin=subprocess.DEVNULL,
-                            preexec_fn=_die_with_parent, env={**os.environ, **(env or {})})
+                            env={**os.environ, **(env or {})})
 
 
 def stop_all(procs: dict[str, subprocess.Popen], grace_s: float = 5.0) -> None:
@@ -77,12 +71,19 @@ def stop_all(procs: dict[str, subprocess.Popen], grace_s: float = 5.0) -> None:
 
 @contextlib.contextmanager
 def services_up(cfg: Config, overrides: list[str], config_path: str | None = None,
-                services: tuple[str, ...] = SERVICES, ready_timeout_s: float = 300.0
+                services: tuple[str, ...] = SERVICES, ready_timeout_s: float = 300.0,
+                subscriptions: dict[str, Callable[[Any], None]] | None = None
                 ) -> Iterator[tuple[Any, str, dict[str, subprocess.Popen]]]:
-    """Router + the named services, ready (every token up). Yields (session, endpoint, procs)."""
+    """Router + the named services, ready (every token up). Yields (session, endpoint, procs).
+
+    `subscriptions` (key -> callback) are declared on the router's session before
+    any service starts, so nothing the services publish is missed.
+    """
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     with open_session(router_config(port)) as session:
+        for key, callback in (subscriptions or {}).items():
+            session.declare_subscriber(key, callback)
         procs = {name: spawn_service(name, endpoint, overrides, config_path) for name in services}
         try:
             deadline = time.monotonic() + ready_timeout_s
@@ -113,9 +114,8 @@ def up(cfg: Config, overrides: list[str], config_path: str | None = None,
     events = Inbox(Event, topic_key(cfg.episode.vehicle, "events"), _NullHealth(), maxlen=1024)
     wall0 = time.monotonic()
     try:
-        with services_up(cfg, overrides, config_path) as (session, _, procs):
-            sub = session.declare_subscriber(events.key,
-                                             lambda s: events.on_payload(s.payload.to_bytes()))
+        with services_up(cfg, overrides, config_path, subscriptions={
+                events.key: lambda s: events.on_payload(s.payload.to_bytes())}) as (_, _, procs):
             log.info("all services up after %.1f s", time.monotonic() - wall0)
             start_wall = None
             deadline = time.monotonic() + timeout_s
@@ -137,7 +137,6 @@ def up(cfg: Config, overrides: list[str], config_path: str | None = None,
                     break
             else:
                 log.error("no outcome after %.0f s wall", timeout_s)
-            sub.undeclare()
     except (RuntimeError, TimeoutError) as exc:
         log.error("%s", exc)
     return summary

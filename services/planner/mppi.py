@@ -24,8 +24,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from common.config import Config, VehicleConfig
-from services.plant.dynamics import ControlLimits, clamp_control, derivatives, integrate
 from services.planner.costs import TERMS, CostParams, MapView, rollout_cost
+from services.plant.dynamics import ControlLimits, clamp_control, derivatives, integrate
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,7 @@ import numpy as np
 from common.config import Config, VehicleConfig
 from common.geometry import bilinear, body_to_world, cell_of, footprint_grid
 from common.scenarios import Scenario
-from services.plant.dynamics import S, ControlLimits, clamp_control, integrate
+from services.plant.dynamics import ControlLimits, S, clamp_control, integrate
 
 OUTCOMES = ("success", "collision", "stopping", "timeout")
 

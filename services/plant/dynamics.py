@@ -68,7 +68,8 @@ def clamp_control(u: Any, u_prev: Any, limits: ControlLimits, dt: float, xp: Any
 def tire_lateral_force(alpha: Any, fz: Any, p: VehicleConfig, xp: Any = np) -> Any:
     """Pacejka magic formula, F_y = D Fz sin(C atan(B a - E (B a - atan(B a))))."""
     ba = p.pacejka_b * alpha
-    return p.pacejka_d * fz * xp.sin(p.pacejka_c * xp.arctan(ba - p.pacejka_e * (ba - xp.arctan(ba))))
+    shape = ba - p.pacejka_e * (ba - xp.arctan(ba))
+    return p.pacejka_d * fz * xp.sin(p.pacejka_c * xp.arctan(shape))
 
 
 def derivatives(p: VehicleConfig, x: Any, u: Any, xp: Any = np) -> Any:

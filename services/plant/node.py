@@ -81,9 +81,9 @@ def main(cfg: Config, instance: str = "0", stop: threading.Event | None = None) 
                 t_tick = state.t
                 cmd = None
                 while cmd is None and not stop.is_set():
-                    cmd = cmds.get_where(lambda c, t=t_tick: abs(c.t0 - t) < 1e-6
-                                         and (not authority or c.header.source == authority),
-                                         timeout=cfg.plant.lockstep_wait_s)
+                    cmd = cmds.get_where(
+                        lambda c, t=t_tick, a=authority: abs(c.t0 - t) < 1e-6
+                        and (not a or c.header.source == a), timeout=cfg.plant.lockstep_wait_s)
                     if cmd is None and not stop.is_set():
                         log.warning("lockstep: no command for t=%.2f after %.0f s", t_tick,
                                     cfg.plant.lockstep_wait_s)

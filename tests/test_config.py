@@ -1,0 +1,59 @@
+import subprocess
+import sys
+
+import pytest
+
+from common.config import ConfigError, load_config
+
+
+def test_defaults_carry_the_papers_values():
+    cfg = load_config()
+    assert cfg.vehicle.mass_kg == 1650.0
+    assert (cfg.vehicle.pacejka_b, cfg.vehicle.pacejka_c, cfg.vehicle.pacejka_d,
+            cfg.vehicle.pacejka_e) == (6.0, 2.5, 0.37, 1.1)
+    assert cfg.planner.horizon == 40 and cfg.planner.dt_s == 0.1
+    assert cfg.sensor.hfov_deg == 72.0 and cfg.sensor.range_m == 25.0
+    assert cfg.mapper.size_cells * cfg.mapper.resolution_m == pytest.approx(80.0)
+    assert cfg.mapper.prior_variance == 3.0
+    assert cfg.plant.rate_hz == 50.0
+
+
+def test_overrides_and_file(tmp_path):
+    f = tmp_path / "c.toml"
+    f.write_text("[planner]\nsamples = 123\n")
+    cfg = load_config(f, ["episode.seed=7", "episode.scenario=alleyway"])
+    assert cfg.planner.samples == 123 and cfg.episode.seed == 7
+    assert cfg.episode.scenario == "alleyway"
+    assert cfg.replace(**{"planner.samples": 9}).planner.samples == 9
+
+
+@pytest.mark.parametrize("override, names", [
+    ("planner.samples=-5", "planner.samples"),
+    ("planner.samples=1.5", "planner.samples"),
+    ("planner.temperature=0", "planner.temperature"),
+    ("episode.clock=fast", "episode.clock"),
+    ("episode.scenario=moon", "episode.scenario"),
+    ("planner.nonsense=1", "planner.nonsense"),
+    ("nosection.x=1", "nosection"),
+    ("bus.multicast_scouting=3", "bus.multicast_scouting"),
+    ("vehicle.mass_kg=nan", "vehicle.mass_kg"),
+    ("planner.dt_s=0.013", "planner.dt_s"),
+    ('bus.mode="peer"', "bus.mode=peer"),
+])
+def test_bad_values_name_the_key(override, names):
+    with pytest.raises(ConfigError, match=names.replace(".", r"\.")):
+        load_config(overrides=[override])
+
+
+def test_bad_file_is_a_clear_error(tmp_path):
+    f = tmp_path / "bad.toml"
+    f.write_text("[planner\nsamples=")
+    with pytest.raises(ConfigError, match="cannot read config file"):
+        load_config(f)
+
+
+def test_cli_rejects_bad_config_before_starting():
+    r = subprocess.run([sys.executable, "-m", "deploy.cli", "up", "--samples", "0"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2
+    assert "planner.samples" in r.stderr

@@ -1,0 +1,105 @@
+"""The mapper against a float64 reference and the behaviours the issue names."""
+
+import math
+
+import numpy as np
+
+from common.config import load_config
+from common.geometry import bilinear
+from services.mapper import core
+from services.sensor.core import CameraParams, render
+
+CFG = load_config()
+P = core.MapperParams.from_config(CFG)
+CAM = CameraParams.from_config(CFG.sensor)
+
+
+def frame(hm, x, y, yaw):
+    z = float(bilinear(hm, x, y, (0.0, 0.0), 0.2))
+    depth, pos, rot = render(CAM, hm, (0.0, 0.0), 0.2, x, y, z, yaw)
+    return depth, pos, rot, np.array([x, y, z, yaw])
+
+
+def reference_fuse(state, depth, intr, pos, rot):
+    """Sequential scalar Kalman updates, one pixel at a time, float64."""
+    mean = state.mean.astype(np.float64)
+    var = state.variance.astype(np.float64)
+    fx, fy, cx, cy = intr
+    for v in range(depth.shape[0]):
+        for u in range(depth.shape[1]):
+            d = float(depth[v, u])
+            if d <= 0:
+                continue
+            pc = np.array([(u - cx) / fx * d, (v - cy) / fy * d, d])
+            pw = rot @ pc + pos
+            col, row = int(math.floor(pw[0] / P.resolution)), int(math.floor(pw[1] / P.resolution))
+            if not (0 <= col < P.size and 0 <= row < P.size):
+                continue
+            s2 = (P.sigma0 + P.k_per_m * float(np.linalg.norm(pc)) ** 2) ** 2
+            k = var[row, col] / (var[row, col] + s2)
+            mean[row, col] += k * (pw[2] - mean[row, col])
+            var[row, col] *= (1 - k)
+    return mean, np.maximum(var, P.min_variance)
+
+
+def test_fusion_matches_sequential_float64_kalman(rng):
+    hm = (rng.normal(size=(400, 400)) * 0.05).astype(np.float32) + 0.3
+    x, y, yaw = rng.uniform(20, 60), rng.uniform(20, 60), rng.uniform(-3, 3)
+    depth, pos, rot, base = frame(hm, x, y, yaw)
+    state = core.initial_map(P, x, y, base[2])
+    got = core.fuse_depth(P, state, depth, CAM.intrinsics, pos, rot)
+    mean, var = reference_fuse(state, depth, CAM.intrinsics, pos, rot)
+    seen = got.observed & ~state.observed
+    assert seen.sum() > 500
+    np.testing.assert_allclose(got.mean[seen], mean[seen], atol=2e-4)
+    np.testing.assert_allclose(got.variance, var, rtol=2e-3, atol=1e-7)
+
+
+def test_flat_plane_converges_and_variance_falls_with_every_observation():
+    hm = np.full((400, 400), 0.5, np.float32)
+    state = core.initial_map(P, 40.0, 40.0, 0.0)
+    history = []
+    for i in range(6):
+        depth, pos, rot, base = frame(hm, 40.0 + 0.3 * i, 40.0, 0.0)
+        state = core.fuse_depth(P, state, depth, CAM.intrinsics, pos, rot)
+        history.append(state.variance.copy())
+    always = np.ones_like(state.observed)
+    for i in range(1, 6):
+        always &= history[i] < history[i - 1]   # observed in every frame: fell every time
+    assert always.sum() > 200
+    start = core.initial_map(P, 40.0, 40.0, 0.0)
+    obs = state.observed & ~start.observed
+    err = np.abs(state.mean[obs] - 0.5)
+    # the Kalman mean keeps var/prior of the prior's (0.0) pull: exact shrinkage bound
+    assert (err <= 0.5 * state.variance[obs] / P.prior_variance * 1.01 + 1e-5).all()
+    assert (err[state.variance[obs] < 0.01] < 2e-3).all()
+
+
+def test_unseen_cells_keep_the_prior():
+    hm = np.zeros((400, 400), np.float32)
+    state = core.initial_map(P, 40.0, 40.0, 0.25)
+    depth, pos, rot, base = frame(hm, 40.0, 40.0, 0.0)
+    after = core.update(P, state, depth, CAM.intrinsics, pos, rot, base)
+    behind = np.zeros_like(after.observed)
+    behind[:, :150] = True           # everything behind the camera (x < 30 m)
+    assert (after.variance[behind] == P.prior_variance).all()
+    assert (after.mean[behind] == np.float32(0.25)).all()
+    assert (after.variance[state.observed] <= P.known_variance).all()  # the known disc
+
+
+def test_occluded_cells_in_view_are_inpainted_and_stay_uncertain():
+    hm = np.zeros((400, 400), np.float32)
+    hm[180:220, 240:250] = 2.0       # a wall 8 m ahead, 8 m wide, hides what is behind it
+    hm[195:205, 280:290] = 1.0       # hidden obstacle behind it
+    state = core.initial_map(P, 40.0, 40.0, 0.0)
+    depth, pos, rot, base = frame(hm, 40.0, 40.0, 0.0)
+    fused = core.fuse_depth(P, state, depth, CAM.intrinsics, pos, rot)
+    out = core.inpaint_occluded(P, fused, 40.0, 40.0, 0.0)
+    shadow = (slice(195, 205), slice(255, 275))      # behind the wall, inside the FOV
+    assert not fused.observed[shadow].any()
+    assert np.isfinite(out.mean).all()
+    assert (out.variance[shadow] == P.prior_variance).all()
+    assert (out.mean[195:205, 251:255] > 0.5).all()   # filled from the wall, not left free
+    assert (out.mean[shadow] != 0.0).mean() > 0.9
+    assert (out.mean[shadow] <= 2.0 + 1e-3).all()
+    assert (out.mean[fused.observed] == fused.mean[fused.observed]).all()

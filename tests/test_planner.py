@@ -1,0 +1,106 @@
+"""MPPI pieces against float64 references, and the controller's behaviour."""
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from common.config import load_config
+from services.planner import mppi
+from services.planner.costs import MapView, exceed_prob, rollout_cost
+from services.plant.dynamics import S, clamp_control, integrate
+
+CFG = load_config(overrides=["planner.samples=256"])
+PP = mppi.PlannerParams.from_config(CFG)
+
+
+def test_rollout_matches_the_float64_model(rng):
+    x0 = np.array([rng.uniform(0, 10), 0, 0, 40.0, 40.0, rng.uniform(-3, 3)])
+    controls = np.stack([rng.uniform(-0.6, 0.6, PP.horizon),
+                         rng.uniform(-6000, 5000, PP.horizon)], -1).astype(np.float32)
+    states, applied, _ = mppi.rollout(PP, jnp.asarray(x0, jnp.float32), jnp.zeros(2), controls)
+    x, u_prev = x0.copy(), np.zeros(2)
+    for i in range(PP.horizon):
+        u = clamp_control(controls[i].astype(np.float64), u_prev, PP.limits, PP.dt)
+        np.testing.assert_allclose(np.asarray(applied[i]), u, rtol=1e-5, atol=1e-3)
+        x = integrate(PP.vehicle, x, u, PP.dt, PP.substeps)
+        u_prev = u
+        np.testing.assert_allclose(np.asarray(states[i + 1, S.X:S.Y + 1]), x[S.X:S.Y + 1],
+                                   atol=5e-3)
+
+
+def test_exceedance_probability_closed_form(rng):
+    mean = rng.normal(size=200) * 0.5
+    var = rng.uniform(0, 0.3, 200) ** 2
+    thr = 0.3
+    got = np.asarray(exceed_prob(jnp.asarray(mean, jnp.float32), jnp.asarray(var, jnp.float32),
+                                 thr))
+    phi = lambda z: 0.5 * (1 + math.erf(z / math.sqrt(2)))  # noqa: E731
+    ref = np.array([1 - (phi((thr - m) / math.sqrt(v)) - phi((-thr - m) / math.sqrt(v)))
+                    for m, v in zip(mean, var, strict=True)])
+    np.testing.assert_allclose(got, ref, atol=2e-6)
+    det = np.asarray(exceed_prob(jnp.asarray(mean, jnp.float32), jnp.zeros(200), thr))
+    np.testing.assert_array_equal(det, (np.abs(mean.astype(np.float32)) > thr).astype(np.float32))
+
+
+def flat_map(n=400):
+    return MapView(jnp.zeros((n, n), jnp.float32), jnp.zeros((n, n), jnp.float32),
+                   jnp.zeros(2), 0.2)
+
+
+def zero_var(row, col):
+    return jnp.zeros(row.shape, jnp.float32)
+
+
+def test_surface_cost_sees_a_wall_and_nothing_on_flat_ground():
+    x0 = jnp.asarray([8.0, 0, 0, 20.0, 40.0, 0.0], jnp.float32)
+    go = jnp.tile(jnp.asarray([0.0, 1000.0], jnp.float32), (PP.horizon, 1))
+    states, _, xd = mppi.rollout(PP, x0, jnp.zeros(2), go)
+    goal = jnp.asarray([60.0, 40.0, 0.0])
+    flat = rollout_cost(PP.cost, states, xd, goal, flat_map(), zero_var)
+    assert float(flat[2]) == 0.0
+    m = flat_map()
+    wall = MapView(m.mean.at[150:250, 200:205].set(2.0), m.variance, m.origin, m.resolution)
+    hit = rollout_cost(PP.cost, states, xd, goal, wall, zero_var)
+    assert float(hit[2]) > 10 * PP.cost.w_surface
+
+
+def test_mppi_is_reproducible_and_moves_toward_the_goal():
+    m = flat_map()
+    goal = np.array([60.0, 40.0, 0.0])
+    x0 = np.array([0, 0, 0, 20.0, 40.0, 0.0])
+
+    def run():
+        qs = mppi.initial_state(PP, 7)
+        outs = []
+        for _ in range(5):
+            qs, out = mppi.solve(PP, qs, x0, np.zeros(2), goal, m.mean, m.variance, m.origin, 0.2)
+            outs.append(out)
+            qs = mppi.advance(qs, 0)
+        return outs
+
+    a, b = run(), run()
+    for oa, ob in zip(a, b, strict=True):
+        np.testing.assert_array_equal(np.asarray(oa.controls), np.asarray(ob.controls))
+    first, last = a[0], a[-1]
+    assert float(last.controls[:10, 1].mean()) > 1000.0         # drives forward
+    assert float(np.sum(last.terms)) < float(np.sum(first.terms))
+    assert float(last.optimal[-1, S.X]) > 30.0
+
+
+def test_advance_shifts_the_nominal():
+    qs = mppi.initial_state(PP, 0)
+    nom = jnp.arange(PP.horizon * 2, dtype=jnp.float32).reshape(PP.horizon, 2)
+    s = mppi.advance(qs._replace(nominal=nom), 3)
+    np.testing.assert_array_equal(np.asarray(s.nominal[0]), np.asarray(nom[3]))
+    np.testing.assert_array_equal(np.asarray(s.nominal[-3:]), np.tile(np.asarray(nom[-1]), (3, 1)))
+
+
+@pytest.mark.parametrize("controller", ["deterministic", "prescient"])
+def test_in_process_episode_reaches_the_goal(controller):
+    from deploy.runner import run_episode
+    cfg = load_config(overrides=["planner.samples=256", f'planner.controller="{controller}"'])
+    r = run_episode(cfg)
+    assert r.outcome == "success", r.summary(cfg)
+    assert r.time_to_goal_s < 15.0
