@@ -2,6 +2,8 @@
 
     vamppi up --scenario NAME [--controller C] [--samples K] [--clock lockstep|realtime] [--seed S]
     vamppi service NAME [--connect tcp/HOST:PORT] [--listen EP] [--mode peer|client|router]
+    vamppi router --listen tcp/0.0.0.0:7447     a standalone router
+    vamppi health --connect tcp/HOST:7447       live instances and their counters
     vamppi run ...           one episode in this process, no bus (the lockstep reference)
     vamppi config ...        print the effective configuration as JSON
 
@@ -109,6 +111,37 @@ def cmd_run(args: argparse.Namespace, cfg: Config) -> int:
     return 0 if result.outcome == "success" else 1
 
 
+def cmd_router(args: argparse.Namespace, cfg: Config) -> int:
+    """A standalone router until Ctrl-C (services on several machines connect to it)."""
+    from common.bus import open_session
+    from common.config import BusConfig
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    bus = BusConfig("router", cfg.bus.connect, cfg.bus.listen or ("tcp/0.0.0.0:7447",),
+                    cfg.bus.multicast_scouting)
+    with open_session(bus):
+        logging.getLogger(__name__).info("router listening on %s", ", ".join(bus.listen))
+        stop.wait()
+    return 0
+
+
+def cmd_health(args: argparse.Namespace, cfg: Config) -> int:
+    """Every live service instance of the vehicle and its health counters, one JSON line each."""
+    from common.bus import admin_key, alive_instances, open_session, query_json
+    with open_session(cfg.bus) as session:
+        found = sorted(alive_instances(session, cfg.episode.vehicle))
+        for service, instance in found:
+            health = query_json(session, admin_key(cfg.episode.vehicle, service, instance,
+                                                   "health"))
+            print(json.dumps({"service": service, "instance": instance,
+                              "health": health[0] if health else None}), flush=True)
+    if not found:
+        print(f"vamppi health: no live service under vehicle {cfg.episode.vehicle!r}",
+              file=sys.stderr)
+    return 0 if found else 1
+
+
 def cmd_config(args: argparse.Namespace, cfg: Config) -> int:
     print(json.dumps(cfg.to_dict(), indent=2))
     return 0
@@ -154,6 +187,16 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("run", help="one lockstep episode in-process, without the bus")
     add_config_args(p)
     p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("router", help="a standalone Zenoh router (default tcp/0.0.0.0:7447)")
+    add_config_args(p)
+    add_bus_args(p)
+    p.set_defaults(func=cmd_router)
+
+    p = sub.add_parser("health", help="live service instances and their counters")
+    add_config_args(p)
+    add_bus_args(p)
+    p.set_defaults(func=cmd_health)
 
     p = sub.add_parser("config", help="print the effective configuration")
     add_config_args(p)

@@ -62,3 +62,19 @@ def test_latest_value_inbox_never_queues(router):
         m = inbox.get(timeout=1.0)
         assert m.header.seq == 19 and inbox.get(timeout=0.1) is None
         assert b.health.superseded == 19
+
+
+def test_vamppi_health_lists_live_instances(router):
+    import json
+    import subprocess
+    import sys
+    with Node(client(router), "vh", "sensor", "s1") as node:
+        node.ready()
+        time.sleep(0.3)
+        r = subprocess.run([sys.executable, "-m", "deploy.cli", "health", "--connect", router,
+                            "--vehicle", "vh"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    rows = [json.loads(line) for line in r.stdout.splitlines()]
+    assert rows == [{"service": "sensor", "instance": "s1",
+                     "health": {"messages_in": 0, "messages_out": 0, "dropped": 0,
+                                "superseded": 0, "last_error": ""}}]
