@@ -293,3 +293,24 @@ def load_config(path: str | Path | None = None, overrides: list[str] | dict[str,
             parse_override(o) for o in overrides)
         data = _merge(data, _dotted(pairs))
     return config_from_dict(data)
+
+
+def parameters_markdown() -> str:
+    """docs/parameters.md, generated from defaults.toml: every key, its default, its comment."""
+    text = resources.files("common").joinpath("defaults.toml").read_text()
+    out = ["# Parameters", "",
+           "Generated from `common/defaults.toml` by `vamppi config --markdown`; every",
+           "parameter has this one default. (Table I) / (Table II) / (text) mark the paper's",
+           "values; the choices behind the others are in dynamics.md, sensor.md, mapper.md,",
+           "planner.md and scenarios.md. Override with `--config FILE` or",
+           "`--set section.key=value`.", ""]
+    for line in text.splitlines():
+        line = line.strip()
+        if line.startswith("[") and line.endswith("]"):
+            out += ["", f"## {line[1:-1]}", "", "| key | default | meaning |", "|---|---|---|"]
+        elif line and not line.startswith("#") and "=" in line:
+            key, rest = line.split("=", 1)
+            value, _, comment = rest.partition("#")
+            meaning = comment.strip().replace("|", "\\|")
+            out.append(f"| `{key.strip()}` | `{value.strip()}` | {meaning} |")
+    return "\n".join(out) + "\n"

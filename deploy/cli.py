@@ -143,7 +143,11 @@ def cmd_health(args: argparse.Namespace, cfg: Config) -> int:
 
 
 def cmd_config(args: argparse.Namespace, cfg: Config) -> int:
-    print(json.dumps(cfg.to_dict(), indent=2))
+    if args.markdown:
+        from common.config import parameters_markdown
+        print(parameters_markdown(), end="")
+    else:
+        print(json.dumps(cfg.to_dict(), indent=2))
     return 0
 
 
@@ -199,6 +203,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_health)
 
     p = sub.add_parser("config", help="print the effective configuration")
+    p.add_argument("--markdown", action="store_true",
+                   help="print docs/parameters.md (every parameter, default, meaning)")
     add_config_args(p)
     p.set_defaults(func=cmd_config)
     return parser

@@ -57,3 +57,15 @@ def test_cli_rejects_bad_config_before_starting():
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2
     assert "planner.samples" in r.stderr
+
+
+def test_parameters_doc_is_generated_from_the_defaults():
+    from pathlib import Path
+
+    from common.config import default_dict, parameters_markdown
+    doc = Path(__file__).resolve().parents[1] / "docs" / "parameters.md"
+    assert doc.read_text() == parameters_markdown(), \
+        "regenerate: vamppi config --markdown > docs/parameters.md"
+    for section, values in default_dict().items():
+        for key in values:
+            assert f"| `{key}` |" in doc.read_text(), f"{section}.{key}"
