@@ -105,7 +105,7 @@ class MapperConfig:
 
 @dataclass(frozen=True)
 class PlannerConfig:
-    controller: str = _rng(choices=("deterministic", "prescient"))
+    controller: str = _rng(choices=("deterministic", "prescient", "va"))
     samples: int = _rng(2, 1_000_000)
     horizon: int = _rng(40, 1000)
     dt_s: float = _rng(0.0, lo_open=True)
@@ -132,6 +132,16 @@ class PlannerConfig:
     a_max_mps2: float = _rng(0.0, lo_open=True)
     beta_max_rad: float = _rng(0.0, lo_open=True)
     v_lat_max_mps: float = _rng(0.0, lo_open=True)
+    visibility_rays: int = _rng(1, 1000)
+    visibility_points: int = _rng(2, 1000)
+    visibility_min_m: float = _rng(0.0)
+    visibility_max_m: float = _rng(0.0, lo_open=True)
+    visibility_height_m: float = _rng(0.0)
+    count_value: float = _rng(0.0)
+    splat_size: int = _rng(1, 99)
+    splat_sigma_cells: float = _rng(0.0, lo_open=True)
+    decay_gamma: float = _rng(0.0)
+    va_chunk: int = _rng(0, 1_000_000)
 
 
 @dataclass(frozen=True)
@@ -266,6 +276,10 @@ def _check_cross(cfg: Config) -> None:
     v, p = cfg.vehicle, cfg.planner
     if v.dynamic_above_mps <= v.kinematic_below_mps:
         raise ConfigError("vehicle.dynamic_above_mps must exceed vehicle.kinematic_below_mps")
+    if p.splat_size % 2 != 1:
+        raise ConfigError("planner.splat_size must be odd (a kernel centred on its cell)")
+    if p.visibility_max_m <= p.visibility_min_m:
+        raise ConfigError("planner.visibility_max_m must exceed planner.visibility_min_m")
     b = cfg.bus
     if b.mode == "peer" and not b.listen and not b.multicast_scouting:
         raise ConfigError("bus.mode=peer needs bus.listen endpoints (or multicast scouting): a "

@@ -49,8 +49,7 @@ def flat_map(n=400):
                    jnp.zeros(2), 0.2)
 
 
-def zero_var(row, col):
-    return jnp.zeros(row.shape, jnp.float32)
+ZERO_VAR = jnp.zeros((PP.horizon + 1, 5 * 2 * CFG.planner.footprint_points), jnp.float32)
 
 
 def test_surface_cost_sees_a_wall_and_nothing_on_flat_ground():
@@ -58,11 +57,11 @@ def test_surface_cost_sees_a_wall_and_nothing_on_flat_ground():
     go = jnp.tile(jnp.asarray([0.0, 1000.0], jnp.float32), (PP.horizon, 1))
     states, _, xd = mppi.rollout(PP, x0, jnp.zeros(2), go)
     goal = jnp.asarray([60.0, 40.0, 0.0])
-    flat = rollout_cost(PP.cost, states, xd, goal, flat_map(), zero_var)
+    flat = rollout_cost(PP.cost, states, xd, goal, flat_map(), ZERO_VAR)
     assert float(flat[2]) == 0.0
     m = flat_map()
     wall = MapView(m.mean.at[150:250, 200:205].set(2.0), m.variance, m.origin, m.resolution)
-    hit = rollout_cost(PP.cost, states, xd, goal, wall, zero_var)
+    hit = rollout_cost(PP.cost, states, xd, goal, wall, ZERO_VAR)
     assert float(hit[2]) > 10 * PP.cost.w_surface
 
 

@@ -91,41 +91,53 @@ def footprint_world(c: CostParams, states: Any) -> tuple[Any, Any]:
                          jnp)
 
 
-def surface_expectation(c: CostParams, m: MapView, px: Any, py: Any, variance_at: Any) -> Any:
-    """Expected number of tripped indicators at each footprint point, (N+1, P).
+# the five cells read per footprint point: centre, +x, -x, +y, -y
+_OFFSETS = ((0, 0), (0, 1), (0, -1), (1, 0), (-1, 0))
 
-    `px, py` (N+1, P) are the footprint points; `variance_at(row, col)` gives the
-    variance the rollout meets there (the map's, or a visibility-updated one).
+
+def query_cells(c: CostParams, m: MapView, states: Any) -> tuple[Any, Any, Any]:
+    """Cells the surface cost reads along a rollout, step-major.
+
+    Returns rows, cols (N+1, 5 P) int (the five cells of every footprint point:
+    centre, +x, -x, +y, -y) and `outside` (N+1, P), footprint points off the map.
     """
     h, w = m.mean.shape
+    px, py = footprint_world(c, states)
     col = jnp.floor((px - m.origin[0]) / m.resolution).astype(jnp.int32)
     row = jnp.floor((py - m.origin[1]) / m.resolution).astype(jnp.int32)
     outside = (col < 1) | (col > w - 2) | (row < 1) | (row > h - 2)
     col = jnp.clip(col, 1, w - 2)
     row = jnp.clip(row, 1, h - 2)
-    mu, var = m.mean, variance_at
-    mu_c, var_c = mu[row, col], var(row, col)
-    # axis gradients by central differences over neighbouring cells (independent cells)
+    rows = jnp.concatenate([row + dr for dr, _ in _OFFSETS], axis=1)
+    cols = jnp.concatenate([col + dc for _, dc in _OFFSETS], axis=1)
+    return rows, cols, outside
+
+
+def surface_expectation(c: CostParams, m: MapView, rows: Any, cols: Any, outside: Any,
+                        query_var: Any, h0: Any) -> Any:
+    """Expected number of tripped indicators at each footprint point, (N+1, P).
+
+    `rows, cols, outside` from `query_cells`; `query_var` (N+1, 5 P) the variance
+    the rollout meets at those cells (zero for the deterministic and prescient
+    controllers, visibility-decayed for VA-MPPI); `h0` the ground under the
+    vehicle now.
+    """
+    n_pts = outside.shape[1]
+    mu = m.mean[rows, cols]
+    split = lambda a: [a[:, k * n_pts:(k + 1) * n_pts] for k in range(5)]  # noqa: E731
+    mu_c, mu_px, mu_mx, mu_py, mu_my = split(mu)
+    var_c, var_px, var_mx, var_py, var_my = split(query_var)
     two_res = 2.0 * m.resolution
-    gx_m = (mu[row, col + 1] - mu[row, col - 1]) / two_res
-    gx_v = (var(row, col + 1) + var(row, col - 1)) / two_res ** 2
-    gy_m = (mu[row + 1, col] - mu[row - 1, col]) / two_res
-    gy_v = (var(row + 1, col) + var(row - 1, col)) / two_res ** 2
+    # axis gradients by central differences over neighbouring cells (independent cells)
+    gx_m, gx_v = (mu_px - mu_mx) / two_res, (var_px + var_mx) / two_res ** 2
+    gy_m, gy_v = (mu_py - mu_my) / two_res, (var_py + var_my) / two_res ** 2
     # step changes: temporally along the horizon (X), across each footprint array (Y)
     zero_row = jnp.zeros_like(mu_c[:1])
     sx_m = jnp.concatenate([zero_row, mu_c[1:] - mu_c[:-1]])
     sx_v = jnp.concatenate([zero_row, var_c[1:] + var_c[:-1]])
-    n = c.n_across
-    first = (jnp.arange(mu_c.shape[1]) % n) == 0
-    prev_m = jnp.roll(mu_c, 1, axis=1)
-    prev_v = jnp.roll(var_c, 1, axis=1)
-    sy_m = jnp.where(first, 0.0, mu_c - prev_m)
-    sy_v = jnp.where(first, 0.0, var_c + prev_v)
-    # height against the CG's ground now (x_0): the cell under the vehicle at i = 0
-    h0 = mu[jnp.clip(jnp.floor((jnp.mean(px[0]) - m.origin[0]) / m.resolution).astype(jnp.int32),
-                     0, w - 1),
-            jnp.clip(jnp.floor((jnp.mean(py[0]) - m.origin[1]) / m.resolution).astype(jnp.int32),
-                     0, h - 1)]
+    first = (jnp.arange(n_pts) % c.n_across) == 0
+    sy_m = jnp.where(first, 0.0, mu_c - jnp.roll(mu_c, 1, axis=1))
+    sy_v = jnp.where(first, 0.0, var_c + jnp.roll(var_c, 1, axis=1))
     total = (exceed_prob(gx_m, gx_v, c.grad_threshold)
              + exceed_prob(gy_m, gy_v, c.grad_threshold)
              + exceed_prob(sx_m, sx_v, c.step_threshold)
@@ -134,14 +146,20 @@ def surface_expectation(c: CostParams, m: MapView, px: Any, py: Any, variance_at
     return jnp.where(outside, 5.0, total)
 
 
-def rollout_cost(c: CostParams, states: Any, xdots: Any, goal: Any, m: MapView,
-                 variance_at: Any) -> Any:
-    """Cost terms (6,) of one rollout: states (N+1, 6), dx/dt (N, 6), goal (3,).
+def ground_now(m: MapView, states: Any) -> Any:
+    """x_0 of Eq. occupied: the mean elevation of the cell under the CG now (i = 0)."""
+    h, w = m.mean.shape
+    r = jnp.clip(jnp.floor((states[0, S.Y] - m.origin[1]) / m.resolution).astype(jnp.int32),
+                 0, h - 1)
+    c = jnp.clip(jnp.floor((states[0, S.X] - m.origin[0]) / m.resolution).astype(jnp.int32),
+                 0, w - 1)
+    return m.mean[r, c]
 
-    `variance_at(row, col)` gives the variance this rollout meets at those
-    cells (the map's own for deterministic/prescient; the visibility-updated one
-    for VA-MPPI).
-    """
+
+def rollout_cost(c: CostParams, states: Any, xdots: Any, goal: Any, m: MapView,
+                 query_var: Any) -> Any:
+    """Cost terms (6,) of one rollout: states (N+1, 6), dx/dt (N, 6), goal (3,),
+    `query_var` (N+1, 5 P) the variance met at the cells of `query_cells`."""
     n = c.horizon
     d = jnp.hypot(states[:, S.X] - goal[0], states[:, S.Y] - goal[1])
     V = states[:, S.V]
@@ -156,8 +174,9 @@ def rollout_cost(c: CostParams, states: Any, xdots: Any, goal: Any, m: MapView,
         (jnp.abs(a_y) >= c.a_roll).astype(jnp.float32) + (a_tot >= c.a_max)
         + (jnp.abs(beta) >= c.beta_max) + (jnp.abs(states[:-1, S.v]) >= c.v_lat_max))
 
-    px, py = footprint_world(c, states)
-    s_surf = c.w_surface * jnp.sum(surface_expectation(c, m, px, py, variance_at))
+    rows, cols, outside = query_cells(c, m, states)
+    s_surf = c.w_surface * jnp.sum(
+        surface_expectation(c, m, rows, cols, outside, query_var, ground_now(m, states)))
 
     d0 = d[0]
     phi = jax.nn.sigmoid(2.0 * (c.activation_distance_m - d0))

@@ -3,8 +3,8 @@
 One iteration: sample K control sequences around the nominal (sample 0 is the
 nominal itself), roll each out through the plant's own model (`rollout`,
 written for one sample and vmapped), let the controller supply the variance
-each rollout meets (`variance_for`, where VA-MPPI's visibility-aware update
-slots in), price every rollout (`costs.rollout_cost`), weight by
+each rollout meets (`query_variance`: where VA-MPPI's visibility-aware update
+comes in), price every rollout (`costs.rollout_cost`), weight by
 exp(-(J - J_min) / lambda) and move the nominal by the weighted noise.
 
     step(params, state, inputs) -> (state, outputs)
@@ -24,13 +24,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from common.config import Config, VehicleConfig
-from services.planner.costs import TERMS, CostParams, MapView, rollout_cost
+from services.planner.costs import TERMS, CostParams, MapView, query_cells, rollout_cost
+from services.planner.visibility import VisibilityParams, batched_decayed_variance
 from services.plant.dynamics import ControlLimits, clamp_control, derivatives, integrate
 
 
 @dataclass(frozen=True)
 class PlannerParams:
-    controller: str                    # deterministic | prescient
+    controller: str                    # deterministic | prescient | va
     samples: int                       # K (J in the paper)
     horizon: int                       # N
     dt: float
@@ -42,6 +43,7 @@ class PlannerParams:
     vehicle: VehicleConfig
     limits: ControlLimits
     cost: CostParams
+    visibility: VisibilityParams
 
     @classmethod
     def from_config(cls, cfg: Config) -> PlannerParams:
@@ -49,7 +51,8 @@ class PlannerParams:
         return cls(p.controller, p.samples, p.horizon, p.dt_s, p.substeps, p.iterations,
                    p.temperature, (p.noise_steer_rad, p.noise_force_n),
                    min(p.rollouts_published, p.samples), cfg.vehicle,
-                   ControlLimits.from_config(cfg.vehicle), CostParams.from_config(cfg))
+                   ControlLimits.from_config(cfg.vehicle), CostParams.from_config(cfg),
+                   VisibilityParams.from_config(cfg))
 
 
 class PlannerState(NamedTuple):
@@ -95,14 +98,18 @@ def rollout(params: PlannerParams, x0: jax.Array, u_prev: jax.Array, controls: j
     return jnp.concatenate([x0[None], xs]), us, xdots
 
 
-def variance_for(params: PlannerParams, m: MapView, states: jax.Array):
-    """The variance a rollout meets, as a lookup (row, col) -> variance.
+def query_variance(params: PlannerParams, m: MapView, states: jax.Array) -> jax.Array:
+    """The variance each rollout meets at its cost's query cells, (K, N+1, 5 P).
 
-    deterministic plans on the mean map and prescient on the true map: both with
-    zero variance. (VA-MPPI's visibility-aware update returns the map variance
-    decayed by what this rollout would have seen.)
+    deterministic plans on the mean map and prescient on the true map, both as
+    certain (zero variance); VA-MPPI decays the map variance by what each rollout
+    would have seen before each step (services.planner.visibility).
     """
-    return lambda row, col: jnp.zeros(row.shape, jnp.float32)
+    rows, cols, _ = jax.vmap(query_cells, in_axes=(None, None, 0))(params.cost, m, states)
+    if params.controller != "va":
+        return jnp.zeros(rows.shape, jnp.float32)
+    return batched_decayed_variance(params.visibility, m.mean, m.variance, m.origin,
+                                    m.resolution, states, rows, cols)
 
 
 def _iteration(params: PlannerParams, state: PlannerState, x0, u_prev, goal, m: MapView):
@@ -115,10 +122,9 @@ def _iteration(params: PlannerParams, state: PlannerState, x0, u_prev, goal, m: 
     states, applied, xdots = jax.vmap(rollout, in_axes=(None, None, None, 0))(
         params, x0, u_prev, candidates)
 
-    def price(s, xd):
-        return rollout_cost(params.cost, s, xd, goal, m, variance_for(params, m, s))
-
-    terms = jax.vmap(price)(states, xdots)
+    qvar = query_variance(params, m, states)
+    terms = jax.vmap(rollout_cost, in_axes=(None, 0, 0, None, None, 0))(
+        params.cost, states, xdots, goal, m, qvar)
     cost = jnp.sum(terms, axis=-1)
     cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)
     j_min = jnp.min(cost)
@@ -137,7 +143,8 @@ def _solve(params: PlannerParams, state: PlannerState, x0, u_prev, goal, mean, v
     for _ in range(params.iterations):
         state, info = _iteration(params, state, x0, u_prev, goal, m)
     states, applied, xdots = rollout(params, x0, u_prev, state.nominal)
-    terms = rollout_cost(params.cost, states, xdots, goal, m, variance_for(params, m, states))
+    terms = rollout_cost(params.cost, states, xdots, goal, m,
+                         query_variance(params, m, states[None])[0])
     xy, costs, j_min, j_mean = info
     state = state._replace(nominal=applied)
     return state, SolveOutput(applied, states, terms, xy, costs, j_min, j_mean)

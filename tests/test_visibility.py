@@ -1,0 +1,118 @@
+"""The visibility-aware variance update against a dense float64 reference."""
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+
+from common.config import load_config
+from services.planner.visibility import VisibilityParams, decayed_variance, visible_points
+
+CFG = load_config(overrides=['planner.controller="va"'])
+VP = VisibilityParams.from_config(CFG)
+
+
+def float64_ray_points(vp, state, res):
+    """World x, y (rays, points) of one pose's ray points in float64."""
+    x, y, psi = (float(v) for v in state[3:6])
+    ang = np.linspace(-vp.fov_rad / 2, vp.fov_rad / 2, vp.rays)[:, None]
+    rng = np.linspace(vp.ray_min_m, vp.ray_max_m, vp.points)[None, :]
+    bx, by = vp.mount_forward_m + rng * np.cos(ang), rng * np.sin(ang)
+    return (x + math.cos(psi) * bx - math.sin(psi) * by,
+            y + math.sin(psi) * bx + math.cos(psi) * by)
+
+
+def reference_visibility(vp, mean, state, rows, cols, res):
+    """The 2D-ray rule in float64 on given cells: a ray ends at its first blocker (seen)
+    or where it leaves the map (not seen)."""
+    n = mean.shape[0]
+    vr, vc = int(math.floor(state[4] / res)), int(math.floor(state[3] / res))
+    ground = mean[min(max(vr, 0), n - 1), min(max(vc, 0), n - 1)]
+    vis = np.zeros(rows.shape, bool)
+    for r in range(vp.rays):
+        for k in range(vp.points):
+            row, col = rows[r, k], cols[r, k]
+            if not (0 <= row < n and 0 <= col < n):
+                break
+            vis[r, k] = True
+            if mean[row, col] > ground + vp.height_m:
+                break
+    return vis
+
+
+def reference_decay(vp, variance, seen, rows, cols):
+    """Dense float64: count maps of poses 0 .. i-1, a full 9 x 9 convolution, the decay,
+    read at step i's queries. `seen[i]` = (rows, cols) of pose i's visible points."""
+    n = variance.shape[0]
+    kern = vp.kernel()
+    half = vp.splat_size // 2
+    raw = np.zeros((n, n))
+    out = np.zeros(rows.shape)
+    for i in range(rows.shape[0]):
+        if i > 0:
+            np.add.at(raw, seen[i - 1], vp.count_value)
+        padded = np.pad(raw, half)
+        splat = np.zeros((n, n))
+        for dy in range(-half, half + 1):
+            for dx in range(-half, half + 1):
+                splat += kern[dy + half, dx + half] * padded[half + dy:half + dy + n,
+                                                             half + dx:half + dx + n]
+        out[i] = (variance * np.exp(-vp.gamma * splat))[rows[i], cols[i]]
+    return out
+
+
+def test_decayed_variance_matches_the_dense_float64_reference(rng):
+    n = 120
+    mean = (rng.normal(size=(n, n)) * 0.1).astype(np.float32)
+    for _ in range(25):                          # obstacles that block rays
+        r, c = rng.integers(5, n - 5, 2)
+        mean[r - 2:r + 3, c - 2:c + 3] += rng.uniform(0.5, 3.0)
+    variance = rng.uniform(0.5, 3.0, (n, n)).astype(np.float32)
+    steps = 12
+    x = np.cumsum(rng.uniform(0.5, 1.1, steps)) + 3.0     # off cell boundaries (ambiguous)
+    y = 12.0 + np.cumsum(rng.normal(size=steps) * 0.2)
+    psi = np.cumsum(rng.normal(size=steps) * 0.15) + rng.uniform(-0.3, 0.3)
+    states = np.zeros((steps, 6), np.float32)
+    states[:, 3], states[:, 4], states[:, 5] = x, y, psi
+    rows = rng.integers(0, n, (steps, 40)).astype(np.int32)
+    cols = rng.integers(0, n, (steps, 40)).astype(np.int32)
+    rows[:, :20] = np.clip((y[:, None] / 0.2 + rng.integers(-20, 20, (steps, 20))), 0, n - 1)
+    cols[:, :20] = np.clip((x[:, None] / 0.2 + rng.integers(0, 60, (steps, 20))), 0, n - 1)
+    got = np.asarray(decayed_variance(VP, jnp.asarray(mean), jnp.asarray(variance),
+                                      jnp.zeros(2), 0.2, jnp.asarray(states), jnp.asarray(rows),
+                                      jnp.asarray(cols)))
+    seen = []
+    for st in states:
+        k_row, k_col, k_vis = (np.asarray(a).reshape(VP.rays, VP.points) for a in visible_points(
+            VP, jnp.asarray(mean), jnp.zeros(2), 0.2, jnp.asarray(st)))
+        # every ray point checked: the kernel's cell is the float64 cell, except for points
+        # within float32 rounding of a cell boundary
+        px, py = float64_ray_points(VP, st.astype(np.float64), 0.2)
+        f_col, f_row = np.floor(px / 0.2).astype(int), np.floor(py / 0.2).astype(int)
+        ambiguous = ((np.abs(px / 0.2 - np.rint(px / 0.2)) < 1e-4)
+                     | (np.abs(py / 0.2 - np.rint(py / 0.2)) < 1e-4))
+        assert ((k_col == f_col) & (k_row == f_row) | ambiguous).all()
+        # visibility: the float64 rule on those cells
+        ref_vis = reference_visibility(VP, mean.astype(np.float64), st.astype(np.float64),
+                                       k_row, k_col, 0.2)
+        np.testing.assert_array_equal(k_vis, ref_vis)
+        seen.append((k_row[k_vis], k_col[k_vis]))
+    ref = reference_decay(VP, variance.astype(np.float64), seen, rows, cols)
+    np.testing.assert_allclose(got[0], variance[rows[0], cols[0]])   # nothing seen yet
+    assert (ref < variance[rows, cols] * 0.999).mean() > 0.2          # the test has teeth
+    np.testing.assert_allclose(got, ref, rtol=2e-4, atol=1e-6)
+
+
+def test_blocked_rays_stop_at_the_first_blocker():
+    mean = np.zeros((200, 200), np.float32)
+    mean[90:110, 110:115] = 2.0                  # a wall 2 m tall, 4 m ahead of a pose at x=18
+    state = jnp.asarray([0, 0, 0, 18.0, 20.0, 0.0], jnp.float32)
+    row, col, vis = (np.asarray(a) for a in visible_points(VP, jnp.asarray(mean), jnp.zeros(2),
+                                                           0.2, state))
+    centre_rays = np.abs(np.linspace(-36, 36, VP.rays)) < 10
+    vis = vis.reshape(VP.rays, VP.points)
+    col = col.reshape(VP.rays, VP.points)
+    for r in np.nonzero(centre_rays)[0]:
+        seen = col[r][vis[r]]
+        assert seen.max() <= 114 and (seen >= 110).any()   # the wall is seen, nothing behind
+    assert vis[0].all() and vis[-1].all()                  # the edge rays pass beside it
