@@ -31,6 +31,7 @@ def _rng(lo: float | None = None, hi: float | None = None, *, lo_open: bool = Fa
 class EpisodeConfig:
     scenario: str = _rng(choices=("open-field", "alleyway", "offroad"))
     seed: int = _rng(0)
+    scenario_seed: int = _rng(0)
     clock: str = _rng(choices=("lockstep", "realtime"))
     vehicle: str = _rng()
     timeout_s: float = _rng(0.0, lo_open=True)
@@ -142,6 +143,8 @@ class PlannerConfig:
     splat_sigma_cells: float = _rng(0.0, lo_open=True)
     decay_gamma: float = _rng(0.0)
     va_chunk: int = _rng(0, 1_000_000)
+    surface_estimator: str = _rng(choices=("closed_form", "monte_carlo"))
+    surface_samples: int = _rng(1, 1_000_000)
 
 
 @dataclass(frozen=True)

@@ -129,3 +129,8 @@ def build_scenario(name: str, seed: int = 0, resolution: float = 0.2,
     obs = tuple(obstacles)
     return Scenario(name, seed, resolution, (0.0, 0.0), terrain, _render(terrain, resolution, obs),
                     start, goal, obs, description)
+
+
+def scenario_of(cfg) -> Scenario:
+    """The scenario a configuration names (every service builds the same one)."""
+    return build_scenario(cfg.episode.scenario, cfg.episode.scenario_seed, cfg.mapper.resolution_m)

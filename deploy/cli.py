@@ -5,6 +5,8 @@
     vamppi router --listen tcp/0.0.0.0:7447     a standalone router
     vamppi health --connect tcp/HOST:7447       live instances and their counters
     vamppi run ...           one episode in this process, no bus (the lockstep reference)
+    vamppi experiment --scenario alleyway,offroad --controllers va,deterministic,prescient \\
+        --samples 400,1000,4000 --runs 100 --seed 0 --out DIR
     vamppi config ...        print the effective configuration as JSON
 
 Every command takes `--config FILE` and `--set section.key=value` (repeatable).
@@ -142,6 +144,18 @@ def cmd_health(args: argparse.Namespace, cfg: Config) -> int:
     return 0 if found else 1
 
 
+def cmd_experiment(args: argparse.Namespace, cfg: Config) -> int:
+    from pathlib import Path
+
+    from deploy.experiment import experiment, parse_list
+    summary = experiment(cfg, parse_list(args.scenarios), parse_list(args.controllers),
+                         parse_list(args.samples_list, int), args.runs, args.seed_base,
+                         Path(args.out), plots=not args.no_plots, progress=not args.quiet)
+    for row in summary:
+        print(json.dumps(row), flush=True)
+    return 0
+
+
 def cmd_config(args: argparse.Namespace, cfg: Config) -> int:
     if args.markdown:
         from common.config import parameters_markdown
@@ -191,6 +205,21 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("run", help="one lockstep episode in-process, without the bus")
     add_config_args(p)
     p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("experiment", help="the paper's Monte-Carlo comparison, in-process")
+    p.add_argument("--scenario", dest="scenarios", default="alleyway,offroad",
+                   help="comma-separated scenarios")
+    p.add_argument("--controllers", default="va,deterministic,prescient")
+    p.add_argument("--samples", dest="samples_list", default="400", help="e.g. 400,1000,4000")
+    p.add_argument("--runs", type=int, default=20, help="runs per scenario/controller/samples")
+    p.add_argument("--seed", dest="seed_base", type=int, default=0,
+                   help="planner seed of the first run; run i uses seed + i")
+    p.add_argument("--out", required=True, help="output directory (resumable)")
+    p.add_argument("--no-plots", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--config", help="TOML file merged over the defaults")
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
+    p.set_defaults(func=cmd_experiment)
 
     p = sub.add_parser("router", help="a standalone Zenoh router (default tcp/0.0.0.0:7447)")
     add_config_args(p)

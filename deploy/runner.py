@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from common.config import Config
-from common.scenarios import Scenario, build_scenario
+from common.scenarios import Scenario, scenario_of
 from services.mapper import core as mapper
 from services.planner import mppi
 from services.plant import core as plant
@@ -35,7 +35,7 @@ class Cores:
 
     @classmethod
     def from_config(cls, cfg: Config) -> Cores:
-        scn = build_scenario(cfg.episode.scenario, cfg.episode.seed, cfg.mapper.resolution_m)
+        scn = scenario_of(cfg)
         return cls(cfg, scn, plant.PlantParams.from_config(cfg, scn),
                    sensor.CameraParams.from_config(cfg.sensor),
                    mapper.MapperParams.from_config(cfg, scn.origin),
@@ -63,6 +63,7 @@ class EpisodeResult:
     wall_time_s: float
     trajectory: np.ndarray                  # (steps+1, 7): t, V, v, r, X, Y, Psi
     solve_ms: list[float] = field(default_factory=list)
+    snapshots: list[dict[str, Any]] = field(default_factory=list)
 
     def summary(self, cfg: Config) -> dict[str, Any]:
         return {"scenario": cfg.episode.scenario, "controller": cfg.planner.controller,
@@ -72,8 +73,10 @@ class EpisodeResult:
                 "sim_time_s": round(self.sim_time_s, 6), "wall_time_s": round(self.wall_time_s, 3)}
 
 
-def run_episode(cfg: Config, cores: Cores | None = None) -> EpisodeResult:
-    """One lockstep episode in this process."""
+def run_episode(cfg: Config, cores: Cores | None = None,
+                snapshot_ticks: frozenset[int] = frozenset()) -> EpisodeResult:
+    """One lockstep episode in this process. At each tick in `snapshot_ticks` the map,
+    the state and the planned trajectory are kept (for the visibility plots)."""
     cores = cores or Cores.from_config(cfg)
     wall0 = time.monotonic()
     ps = plant.initial_state(cores.plant)
@@ -82,6 +85,7 @@ def run_episode(cfg: Config, cores: Cores | None = None) -> EpisodeResult:
     qs = mppi.initial_state(cores.planner, cfg.episode.seed)
     rows = [np.concatenate([[ps.t], ps.x])]
     solve_ms: list[float] = []
+    snapshots: list[dict[str, Any]] = []
     tick = 0
     while not ps.done:
         x, z = ps.x, plant.ground_z(cores.plant, ps.x[S.X], ps.x[S.Y])
@@ -98,6 +102,11 @@ def run_episode(cfg: Config, cores: Cores | None = None) -> EpisodeResult:
                              cores.mapper.origin, cores.mapper.resolution)
         controls = np.asarray(out.controls)
         solve_ms.append((time.perf_counter() - t_solve) * 1e3)
+        if tick in snapshot_ticks:
+            snapshots.append({"t": ps.t, "x": ps.x.copy(), "mean": m.mean.copy(),
+                              "variance": m.variance.copy(),
+                              "optimal": np.asarray(out.optimal), "terms": np.asarray(out.terms),
+                              "u": controls[0].copy()})
         t0 = ps.t
         for _ in range(cores.plant.steps_per_tick):
             u = plant.control_at(ps.t, t0, cores.plant.tick_s, controls)
@@ -107,4 +116,4 @@ def run_episode(cfg: Config, cores: Cores | None = None) -> EpisodeResult:
                 break
         tick += 1
     return EpisodeResult(ps.outcome, ps.time_to_goal_s, ps.t, time.monotonic() - wall0,
-                         np.array(rows), solve_ms)
+                         np.array(rows), solve_ms, snapshots)

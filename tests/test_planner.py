@@ -2,6 +2,7 @@
 
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -103,3 +104,25 @@ def test_in_process_episode_reaches_the_goal(controller):
     r = run_episode(cfg)
     assert r.outcome == "success", r.summary(cfg)
     assert r.time_to_goal_s < 15.0
+
+
+def test_monte_carlo_surface_cost_agrees_with_the_closed_form(rng):
+    from services.planner.costs import CostParams, surface_expectation
+    c_cf = CostParams.from_config(CFG)
+    c_mc = CostParams.from_config(CFG.replace(**{"planner.surface_estimator": "monte_carlo",
+                                                 "planner.surface_samples": 4000}))
+    n, steps, p = 60, PP.horizon + 1, 2 * CFG.planner.footprint_points
+    mean = jnp.asarray(rng.normal(size=(n, n)) * 0.4, jnp.float32)
+    m = MapView(mean, jnp.zeros((n, n)), jnp.zeros(2), 0.2)
+    rows = jnp.asarray(rng.integers(1, n - 1, (steps, 5 * p)), jnp.int32)
+    cols = jnp.asarray(rng.integers(1, n - 1, (steps, 5 * p)), jnp.int32)
+    outside = jnp.zeros((steps, p), bool)
+    qvar = jnp.asarray(rng.uniform(0, 0.4, (steps, 5 * p)) ** 2, jnp.float32)
+    cf = np.asarray(surface_expectation(c_cf, m, rows, cols, outside, qvar, 0.0))
+    mc = np.asarray(surface_expectation(c_mc, m, rows, cols, outside, qvar, 0.0,
+                                        jax.random.PRNGKey(int(rng.integers(1 << 30)))))
+    # a sum of five Bernoulli frequencies over 4000 draws: standard error <= sqrt(5/4/4000)
+    se = np.sqrt(5 * 0.25 / 4000)
+    assert np.abs(mc - cf).max() < 5 * se
+    assert abs(mc.mean() - cf.mean()) < 5 * se / np.sqrt(cf.size)
+    assert 0.2 < cf.mean() < 4.8                 # neither all-0 nor all-5: the test has teeth

@@ -53,6 +53,8 @@ class CostParams:
     v_lat_max: float
     footprint: tuple[tuple[float, float], ...]   # (P, 2) body frame: front array, rear array
     n_across: int
+    estimator: str                 # closed_form | monte_carlo
+    samples: int                   # N_theta of the Monte-Carlo estimate
 
     @classmethod
     def from_config(cls, cfg: Config) -> CostParams:
@@ -63,7 +65,8 @@ class CostParams:
                    p.acc_distance_floor_m, float(np.sqrt(p.grad_sq_threshold)),
                    float(np.sqrt(p.step_sq_threshold)), p.height_threshold_m, p.a_roll_mps2,
                    p.a_max_mps2, p.beta_max_rad, p.v_lat_max_mps,
-                   tuple(map(tuple, fp.tolist())), p.footprint_points)
+                   tuple(map(tuple, fp.tolist())), p.footprint_points, p.surface_estimator,
+                   p.surface_samples)
 
 
 def exceed_prob(mean: Any, var: Any, threshold: float) -> Any:
@@ -113,37 +116,63 @@ def query_cells(c: CostParams, m: MapView, states: Any) -> tuple[Any, Any, Any]:
     return rows, cols, outside
 
 
+def _split5(a: Any, n_pts: int) -> list[Any]:
+    return [a[:, k * n_pts:(k + 1) * n_pts] for k in range(5)]
+
+
+def indicator_quantities(c: CostParams, m: MapView, h: Any, n_pts: int, h0: Any) -> list[Any]:
+    """The five quantities of Eq. occupied from cell values `h` (..., N+1, 5 P):
+    x and y gradient, x (temporal) and y (across-array) step, height against x_0."""
+    h_c, h_px, h_mx, h_py, h_my = (h[..., k * n_pts:(k + 1) * n_pts] for k in range(5))
+    two_res = 2.0 * m.resolution
+    zero = jnp.zeros_like(h_c[..., :1, :])
+    first = (jnp.arange(n_pts) % c.n_across) == 0
+    return [(h_px - h_mx) / two_res, (h_py - h_my) / two_res,
+            jnp.concatenate([zero, h_c[..., 1:, :] - h_c[..., :-1, :]], axis=-2),
+            jnp.where(first, 0.0, h_c - jnp.roll(h_c, 1, axis=-1)), h_c - h0]
+
+
 def surface_expectation(c: CostParams, m: MapView, rows: Any, cols: Any, outside: Any,
-                        query_var: Any, h0: Any) -> Any:
+                        query_var: Any, h0: Any, key: Any = None) -> Any:
     """Expected number of tripped indicators at each footprint point, (N+1, P).
 
     `rows, cols, outside` from `query_cells`; `query_var` (N+1, 5 P) the variance
     the rollout meets at those cells (zero for the deterministic and prescient
     controllers, visibility-decayed for VA-MPPI); `h0` the ground under the
-    vehicle now.
+    vehicle now. Cells are independent Gaussians. `closed_form`: each quantity is
+    a difference of independent Gaussians, P(|X| > t) from the normal CDF.
+    `monte_carlo` (the paper's N_theta samples, needs `key`): every looked-up
+    cell drawn independently, the indicators averaged.
     """
     n_pts = outside.shape[1]
     mu = m.mean[rows, cols]
-    split = lambda a: [a[:, k * n_pts:(k + 1) * n_pts] for k in range(5)]  # noqa: E731
-    mu_c, mu_px, mu_mx, mu_py, mu_my = split(mu)
-    var_c, var_px, var_mx, var_py, var_my = split(query_var)
-    two_res = 2.0 * m.resolution
-    # axis gradients by central differences over neighbouring cells (independent cells)
-    gx_m, gx_v = (mu_px - mu_mx) / two_res, (var_px + var_mx) / two_res ** 2
-    gy_m, gy_v = (mu_py - mu_my) / two_res, (var_py + var_my) / two_res ** 2
-    # step changes: temporally along the horizon (X), across each footprint array (Y)
-    zero_row = jnp.zeros_like(mu_c[:1])
-    sx_m = jnp.concatenate([zero_row, mu_c[1:] - mu_c[:-1]])
-    sx_v = jnp.concatenate([zero_row, var_c[1:] + var_c[:-1]])
-    first = (jnp.arange(n_pts) % c.n_across) == 0
-    sy_m = jnp.where(first, 0.0, mu_c - jnp.roll(mu_c, 1, axis=1))
-    sy_v = jnp.where(first, 0.0, var_c + jnp.roll(var_c, 1, axis=1))
-    total = (exceed_prob(gx_m, gx_v, c.grad_threshold)
-             + exceed_prob(gy_m, gy_v, c.grad_threshold)
-             + exceed_prob(sx_m, sx_v, c.step_threshold)
-             + exceed_prob(sy_m, sy_v, c.step_threshold)
-             + exceed_prob(mu_c - h0, var_c, c.height_threshold))
-    return jnp.where(outside, 5.0, total)
+    thresholds = (c.grad_threshold, c.grad_threshold, c.step_threshold, c.step_threshold,
+                  c.height_threshold)
+    if c.estimator == "monte_carlo":
+        batch = 50
+
+        def draw(total, k):
+            z = jax.random.normal(k, (batch,) + mu.shape, mu.dtype)
+            q = indicator_quantities(c, m, mu + jnp.sqrt(query_var) * z, n_pts, h0)
+            hits = sum((jnp.abs(x) > t).astype(jnp.float32)
+                       for x, t in zip(q, thresholds, strict=True))
+            return total + jnp.sum(hits, axis=0), None
+
+        keys = jax.random.split(key, -(-c.samples // batch))
+        total, _ = jax.lax.scan(draw, jnp.zeros(outside.shape, jnp.float32), keys)
+        expected = total / (keys.shape[0] * batch)
+    else:
+        means = indicator_quantities(c, m, mu, n_pts, h0)
+        v_c, v_px, v_mx, v_py, v_my = _split5(query_var, n_pts)
+        two_res2 = (2.0 * m.resolution) ** 2
+        zero = jnp.zeros_like(v_c[:1])
+        first = (jnp.arange(n_pts) % c.n_across) == 0
+        variances = [(v_px + v_mx) / two_res2, (v_py + v_my) / two_res2,
+                     jnp.concatenate([zero, v_c[1:] + v_c[:-1]]),
+                     jnp.where(first, 0.0, v_c + jnp.roll(v_c, 1, axis=1)), v_c]
+        expected = sum(exceed_prob(mq, vq, t)
+                       for mq, vq, t in zip(means, variances, thresholds, strict=True))
+    return jnp.where(outside, 5.0, expected)
 
 
 def ground_now(m: MapView, states: Any) -> Any:
@@ -157,9 +186,10 @@ def ground_now(m: MapView, states: Any) -> Any:
 
 
 def rollout_cost(c: CostParams, states: Any, xdots: Any, goal: Any, m: MapView,
-                 query_var: Any) -> Any:
+                 query_var: Any, key: Any = None) -> Any:
     """Cost terms (6,) of one rollout: states (N+1, 6), dx/dt (N, 6), goal (3,),
-    `query_var` (N+1, 5 P) the variance met at the cells of `query_cells`."""
+    `query_var` (N+1, 5 P) the variance met at the cells of `query_cells`; `key`
+    for the Monte-Carlo surface estimate."""
     n = c.horizon
     d = jnp.hypot(states[:, S.X] - goal[0], states[:, S.Y] - goal[1])
     V = states[:, S.V]
@@ -176,7 +206,7 @@ def rollout_cost(c: CostParams, states: Any, xdots: Any, goal: Any, m: MapView,
 
     rows, cols, outside = query_cells(c, m, states)
     s_surf = c.w_surface * jnp.sum(
-        surface_expectation(c, m, rows, cols, outside, query_var, ground_now(m, states)))
+        surface_expectation(c, m, rows, cols, outside, query_var, ground_now(m, states), key))
 
     d0 = d[0]
     phi = jax.nn.sigmoid(2.0 * (c.activation_distance_m - d0))

@@ -113,7 +113,7 @@ def query_variance(params: PlannerParams, m: MapView, states: jax.Array) -> jax.
 
 
 def _iteration(params: PlannerParams, state: PlannerState, x0, u_prev, goal, m: MapView):
-    key, sub = jax.random.split(state.key)
+    key, sub, mc = jax.random.split(state.key, 3)
     k, n = params.samples, params.horizon
     std = jnp.asarray(params.noise_std, jnp.float32)
     eps = jax.random.normal(sub, (k, n, 2), jnp.float32) * std
@@ -123,8 +123,8 @@ def _iteration(params: PlannerParams, state: PlannerState, x0, u_prev, goal, m: 
         params, x0, u_prev, candidates)
 
     qvar = query_variance(params, m, states)
-    terms = jax.vmap(rollout_cost, in_axes=(None, 0, 0, None, None, 0))(
-        params.cost, states, xdots, goal, m, qvar)
+    terms = jax.vmap(rollout_cost, in_axes=(None, 0, 0, None, None, 0, 0))(
+        params.cost, states, xdots, goal, m, qvar, jax.random.split(mc, k))
     cost = jnp.sum(terms, axis=-1)
     cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)
     j_min = jnp.min(cost)
@@ -144,7 +144,7 @@ def _solve(params: PlannerParams, state: PlannerState, x0, u_prev, goal, mean, v
         state, info = _iteration(params, state, x0, u_prev, goal, m)
     states, applied, xdots = rollout(params, x0, u_prev, state.nominal)
     terms = rollout_cost(params.cost, states, xdots, goal, m,
-                         query_variance(params, m, states[None])[0])
+                         query_variance(params, m, states[None])[0], state.key)
     xy, costs, j_min, j_mean = info
     state = state._replace(nominal=applied)
     return state, SolveOutput(applied, states, terms, xy, costs, j_min, j_mean)

@@ -16,7 +16,7 @@ import numpy as np
 from common.bus import Node, ref_of
 from common.config import Config
 from common.messages import Cmd, Map, Plan, State, Stats
-from common.scenarios import build_scenario
+from common.scenarios import scenario_of
 from services.planner import mppi
 from services.planner.costs import TERMS
 
@@ -26,7 +26,7 @@ log = logging.getLogger(__name__)
 def main(cfg: Config, instance: str = "0", stop: threading.Event | None = None) -> None:
     stop = stop or threading.Event()
     params = mppi.PlannerParams.from_config(cfg)
-    scn = build_scenario(cfg.episode.scenario, cfg.episode.seed, cfg.mapper.resolution_m)
+    scn = scenario_of(cfg)
     goal = np.array([scn.goal.x, scn.goal.y, scn.goal.yaw])
     truth = scn.heightmap if params.controller == "prescient" else None
     lockstep = cfg.episode.clock == "lockstep"

@@ -18,7 +18,7 @@ import numpy as np
 from common.bus import SERVICES, Node, alive_instances, ref_of
 from common.config import Config
 from common.messages import Clock, Cmd, Event, State
-from common.scenarios import build_scenario
+from common.scenarios import scenario_of
 from services.plant import core
 from services.plant.dynamics import S
 
@@ -44,7 +44,7 @@ def wait_for_peers(node: Node, stop: threading.Event, services: tuple[str, ...])
 def main(cfg: Config, instance: str = "0", stop: threading.Event | None = None) -> str:
     """Run one episode; returns its outcome ("" if stopped first)."""
     stop = stop or threading.Event()
-    scenario = build_scenario(cfg.episode.scenario, cfg.episode.seed, cfg.mapper.resolution_m)
+    scenario = scenario_of(cfg)
     params = core.PlantParams.from_config(cfg, scenario)
     lockstep = cfg.episode.clock == "lockstep"
     with Node(cfg.bus, cfg.episode.vehicle, "plant", instance, cfg.to_dict()) as node:

@@ -11,7 +11,7 @@ import numpy as np
 from common.bus import Node, ref_of
 from common.config import Config
 from common.messages import Depth, State
-from common.scenarios import build_scenario
+from common.scenarios import scenario_of
 from services.plant.dynamics import S
 from services.sensor import core
 
@@ -20,7 +20,7 @@ log = logging.getLogger(__name__)
 
 def main(cfg: Config, instance: str = "0", stop: threading.Event | None = None) -> None:
     stop = stop or threading.Event()
-    scn = build_scenario(cfg.episode.scenario, cfg.episode.seed, cfg.mapper.resolution_m)
+    scn = scenario_of(cfg)
     cam = core.CameraParams.from_config(cfg.sensor)
     period = 1.0 / cfg.sensor.rate_hz
     lockstep = cfg.episode.clock == "lockstep"

@@ -1,0 +1,139 @@
+"""`vamppi experiment`: the paper's Monte-Carlo comparison, in-process and lockstep.
+
+For every scenario x controller x sample count, `runs` episodes with planner
+seeds `seed, seed + 1, ...` on the same scenario (its terrain fixed by
+`episode.scenario_seed`). The same cores as the services, composed by
+`deploy.runner`.
+
+Output directory:
+  runs.jsonl     one record per finished run, appended and fsynced as each ends:
+                 an interrupted experiment keeps its finished runs and resumes
+                 where it stopped (a torn last line is ignored)
+  summary.json   per scenario/controller/samples: counts of each outcome and the
+                 time to goal over successful runs
+  *.png          the plots of `deploy.plots`
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from common.config import Config
+from deploy.runner import Cores, run_episode
+from services.plant.core import OUTCOMES
+
+log = logging.getLogger(__name__)
+
+KEY_FIELDS = ("scenario", "controller", "samples", "seed")
+
+
+def run_record(cfg: Config, result) -> dict[str, Any]:
+    """One run's record: the summary, its 10 Hz path (t, X, Y, V) and solve times."""
+    traj = result.trajectory
+    every = max(1, int(round(cfg.plant.rate_hz * cfg.planner.dt_s)))
+    path = traj[::every][:, [0, 4, 5, 1]]
+    speed = np.hypot(traj[:, 1], traj[:, 2])
+    rec = result.summary(cfg)
+    rec.update(path=np.round(path, 3).tolist(), max_speed_mps=round(float(speed.max()), 3),
+               solve_ms=[round(x, 2) for x in result.solve_ms],
+               scenario_seed=cfg.episode.scenario_seed)
+    return rec
+
+
+def read_runs(path: Path) -> list[dict[str, Any]]:
+    """Every complete record of a runs.jsonl; torn or malformed lines are skipped."""
+    runs: list[dict[str, Any]] = []
+    if not path.exists():
+        return runs
+    bad = 0
+    with path.open() as f:
+        for line in f:
+            try:
+                rec = json.loads(line)
+                if all(k in rec for k in KEY_FIELDS) and rec.get("outcome") in OUTCOMES:
+                    runs.append(rec)
+                    continue
+            except json.JSONDecodeError:
+                pass
+            bad += 1
+    if bad:
+        log.warning("%s: skipped %d incomplete or malformed line(s)", path, bad)
+    return runs
+
+
+def _append(path: Path, rec: dict[str, Any]) -> None:
+    # a torn last line (a crash mid-write) must not swallow this record
+    if path.exists() and path.stat().st_size:
+        with path.open("rb") as f:
+            f.seek(-1, os.SEEK_END)
+            ends_clean = f.read(1) == b"\n"
+        if not ends_clean:
+            with path.open("a") as f:
+                f.write("\n")
+    with path.open("a") as f:
+        f.write(json.dumps(rec) + "\n")
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def summarize(runs: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
+    groups: dict[tuple, list[dict[str, Any]]] = {}
+    for r in runs:
+        groups.setdefault((r["scenario"], r["controller"], r["samples"]), []).append(r)
+    out = []
+    for (scenario, controller, samples), rs in sorted(groups.items()):
+        ttg = [r["time_to_goal_s"] for r in rs if r["outcome"] == "success"]
+        row: dict[str, Any] = {"scenario": scenario, "controller": controller,
+                               "samples": samples, "runs": len(rs)}
+        row.update({o: sum(r["outcome"] == o for r in rs) for o in OUTCOMES})
+        row["time_to_goal_mean_s"] = round(float(np.mean(ttg)), 3) if ttg else None
+        row["time_to_goal_std_s"] = round(float(np.std(ttg)), 3) if ttg else None
+        out.append(row)
+    return out
+
+
+def experiment(cfg: Config, scenarios: list[str], controllers: list[str], samples: list[int],
+               runs: int, seed: int, out: Path, plots: bool = True,
+               progress: bool = True) -> list[dict[str, Any]]:
+    """Run what is missing from `out/runs.jsonl`, then write the summary and plots."""
+    out.mkdir(parents=True, exist_ok=True)
+    runs_path = out / "runs.jsonl"
+    done = {tuple(r[k] for k in KEY_FIELDS) for r in read_runs(runs_path)}
+    todo = [(s, c, k, seed + i) for s in scenarios for c in controllers for k in samples
+            for i in range(runs) if (s, c, k, seed + i) not in done]
+    log.info("%d run(s) to do, %d already in %s", len(todo), len(done), runs_path)
+    cores_cache: dict[tuple, Cores] = {}
+    bar = tqdm(todo, desc="experiment", unit="run", disable=not progress, dynamic_ncols=True)
+    for scenario, controller, k, s in bar:
+        run_cfg = cfg.replace(**{"episode.scenario": scenario, "planner.controller": controller,
+                                 "planner.samples": k, "episode.seed": s})
+        ck = (scenario, controller, k)
+        if ck not in cores_cache:
+            cores_cache.clear()          # one set of compiled cores at a time
+            cores_cache[ck] = Cores.from_config(run_cfg)
+        result = run_episode(run_cfg, cores_cache[ck])
+        _append(runs_path, run_record(run_cfg, result))
+        bar.set_postfix_str(f"{scenario}/{controller}/{k}: {result.outcome}")
+    all_runs = read_runs(runs_path)
+    summary = summarize(all_runs)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    if plots:
+        from deploy import plots as plotting
+        plotting.plot_all(cfg, all_runs, summary, out)
+    return summary
+
+
+def parse_list(text: str, kind=str) -> list:
+    items = [kind(x) for x in text.split(",") if x.strip()]
+    if not items:
+        raise ValueError(f"empty list: {text!r}")
+    return items
+
