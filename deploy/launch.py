@@ -22,7 +22,7 @@ import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
-from common.bus import SERVICES, Inbox, alive_instances, open_session, topic_key
+from common.bus import SERVICES, Health, Inbox, alive_instances, open_session, topic_key
 from common.config import BusConfig, Config
 from common.messages import Event
 from services.plant.core import OUTCOMES
@@ -111,7 +111,7 @@ def up(cfg: Config, overrides: list[str], config_path: str | None = None,
         "scenario": cfg.episode.scenario, "controller": cfg.planner.controller,
         "samples": cfg.planner.samples, "seed": cfg.episode.seed, "outcome": "error",
         "time_to_goal_s": None, "sim_time_s": None, "wall_time_s": None}
-    events = Inbox(Event, topic_key(cfg.episode.vehicle, "events"), _NullHealth(), maxlen=1024)
+    events = Inbox(Event, topic_key(cfg.episode.vehicle, "events"), Health(), maxlen=1024)
     wall0 = time.monotonic()
     try:
         with services_up(cfg, overrides, config_path, subscriptions={
@@ -141,11 +141,3 @@ def up(cfg: Config, overrides: list[str], config_path: str | None = None,
         log.error("%s", exc)
     return summary
 
-
-class _NullHealth:
-    """Counters for the launcher's own inbox (nobody queries them)."""
-    messages_in = 0
-    superseded = 0
-
-    def count_error(self, text: str) -> None:
-        log.warning("launcher dropped a message: %s", text)

@@ -16,7 +16,8 @@ Causality: the variance the trajectory meets at step i uses only the points
 seen from poses 0 .. i-1. A scan over the horizon carries the trajectory's raw
 (unsplatted) count map: step i adds pose i-1's visible points, then reads the
 splatted count at step i's query cells (a 9 x 9 window per cell). Memory: one
-padded map per trajectory of a chunk (`va_chunk`), never K full maps at once.
+padded map per trajectory of a chunk (`va_chunk`), never K full maps at once,
+plus the visible points of every pose (K x (N+1) x 600 indices).
 """
 
 from __future__ import annotations
@@ -94,15 +95,17 @@ def visible_points(vp: VisibilityParams, mean: Any, origin: Any, resolution: flo
     return row, col, visible
 
 
-def decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, origin: Any,
-                     resolution: float, states: Any, rows: Any, cols: Any) -> Any:
-    """Variance one trajectory meets at query cells: states (N+1, 6), rows/cols (N+1, Q)
-    int, step-major. Step i's queries see the points of poses 0 .. i-1 only.
+def batched_decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, origin: Any,
+                             resolution: float, states: Any, rows: Any, cols: Any) -> Any:
+    """Variance K trajectories meet at their query cells: states (K, N+1, 6), rows/cols
+    (K, N+1, Q) int, step-major; step i's queries see the points of poses 0 .. i-1 only.
 
-    The scan body first adds pose i-1's visible points to the raw count map, then
-    reads step i's queries (splatting on read: a 9 x 9 window per query cell).
-    Adding before reading lets XLA update the carried map in place; reading
-    first would copy it every step.
+    Every pose's visible points are found at once, vectorised over K and N. Then,
+    per trajectory, a scan over the horizon carries its raw count map: step i adds
+    pose i-1's points, then reads step i's query cells through a 9 x 9 window
+    (splat on read). Adding before reading lets XLA update the carried map in
+    place (reading first made it copy the map every step). Trajectories go
+    `chunk` at a time (`lax.map` over chunks, `vmap` within).
     """
     h, w = mean.shape
     pad = vp.splat_size // 2
@@ -110,44 +113,44 @@ def decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, origin: Any
     kern = jnp.asarray(vp.kernel(), jnp.float32)
     off = jnp.arange(-pad, pad + 1)
     window = off[:, None] * wp + off[None, :]                    # (size, size) flat offsets
-    previous = jnp.concatenate([states[:1], states[:-1]])        # pose i-1 for step i
 
-    def step(counts, inp):
-        i, pose, qr, qc = inp
-        row, col, vis = visible_points(vp, mean, origin, resolution, pose)
-        add = jnp.where(vis & (i > 0), vp.count_value, 0.0)
-        counts = counts.at[(row + pad) * wp + col + pad].add(add, mode="drop")
-        qr_c, qc_c = jnp.clip(qr, 0, h - 1), jnp.clip(qc, 0, w - 1)
-        centre = (qr_c + pad) * wp + qc_c + pad
-        c_splat = jnp.sum(counts[centre[:, None, None] + window] * kern, axis=(1, 2))
-        return counts, variance[qr_c, qc_c] * jnp.exp(-vp.gamma * c_splat)
+    row, col, vis = jax.vmap(jax.vmap(
+        lambda st: visible_points(vp, mean, origin, resolution, st)))(states)   # (K, N+1, M)
+    flat = (row + pad) * wp + col + pad
+    add = jnp.where(vis, jnp.float32(vp.count_value), 0.0)
+    flat = jnp.concatenate([jnp.zeros_like(flat[:, :1]), flat[:, :-1]], axis=1)  # pose i-1
+    add = jnp.concatenate([jnp.zeros_like(add[:, :1]), add[:, :-1]], axis=1)
+    qr, qc = jnp.clip(rows, 0, h - 1), jnp.clip(cols, 0, w - 1)
+    centre = (qr + pad) * wp + qc + pad
+    prior = variance[qr, qc]
 
-    counts0 = jnp.zeros(((h + 2 * pad) * wp,), jnp.float32)
-    steps = jnp.arange(states.shape[0])
-    _, v = jax.lax.scan(step, counts0, (steps, previous, rows, cols))
-    return v
+    def one(fl, ad, ce, q):
+        def step(counts, inp):
+            f1, a1, c1 = inp
+            counts = counts.at[f1].add(a1, mode="drop")
+            return counts, jnp.sum(counts[c1[:, None, None] + window] * kern, axis=(1, 2))
 
+        _, c_splat = jax.lax.scan(step, jnp.zeros(((h + 2 * pad) * wp,), jnp.float32),
+                                  (fl, ad, ce))
+        return q * jnp.exp(-vp.gamma * c_splat)
 
-def batched_decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, origin: Any,
-                             resolution: float, states: Any, rows: Any, cols: Any) -> Any:
-    """`decayed_variance` for K trajectories (K, N+1, ...), in chunks of `vp.chunk`."""
     k = states.shape[0]
     chunk = vp.chunk or (1 if jax.default_backend() == "cpu" else 256)
     chunk = max(1, min(chunk, k))
     n_chunks = -(-k // chunk)
-    pad_k = n_chunks * chunk - k
-
-    def padded(a):
-        return jnp.concatenate([a, jnp.repeat(a[-1:], pad_k, axis=0)]) if pad_k else a
-
-    def one_chunk(args):
-        s, r, c = args
-        return jax.vmap(lambda s1, r1, c1: decayed_variance(
-            vp, mean, variance, origin, resolution, s1, r1, c1))(s, r, c)
 
     def split(a):
-        a = padded(a)
+        extra = n_chunks * chunk - k
+        a = jnp.concatenate([a, jnp.repeat(a[-1:], extra, axis=0)]) if extra else a
         return a.reshape((n_chunks, chunk) + a.shape[1:])
 
-    out = jax.lax.map(one_chunk, (split(states), split(rows), split(cols)))
+    out = jax.lax.map(lambda args: jax.vmap(one)(*args),
+                      (split(flat), split(add), split(centre), split(prior)))
     return out.reshape((n_chunks * chunk,) + out.shape[2:])[:k]
+
+
+def decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, origin: Any,
+                     resolution: float, states: Any, rows: Any, cols: Any) -> Any:
+    """`batched_decayed_variance` for one trajectory: states (N+1, 6), rows/cols (N+1, Q)."""
+    return batched_decayed_variance(vp, mean, variance, origin, resolution, states[None],
+                                    rows[None], cols[None])[0]
