@@ -102,6 +102,7 @@ class MapperConfig:
     noise_k_per_m: float = _rng(0.0)
     min_variance: float = _rng(0.0, lo_open=True)
     inpaint_radius_cells: int = _rng(1, 50)
+    occluder_height_m: float = _rng(0.0)
 
 
 @dataclass(frozen=True)

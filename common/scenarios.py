@@ -97,8 +97,10 @@ def _alleyway(rng: np.random.Generator) -> tuple[Pose2, Pose2, list[Obstacle], s
     walls = [Obstacle("box", 40.0, 31.0, 3.0, half_x=32.0, half_y=1.0),
              Obstacle("box", 40.0, 49.0, 3.0, half_x=32.0, half_y=1.0)]
     central = [Obstacle("box", 36.0, 40.0, 2.5, half_x=2.5, half_y=3.0)]
-    hidden = [Obstacle("cylinder", 44.0, 34.6, 2.0, radius=1.0),
-              Obstacle("cylinder", 44.0, 45.4, 2.0, radius=1.0)]
+    # just behind the block's corners: hidden from the start, revealed only once the
+    # vehicle clears a corner, on the line a fast vehicle takes back to the centre
+    hidden = [Obstacle("cylinder", 42.5, 37.0, 2.0, radius=1.0),
+              Obstacle("cylinder", 42.5, 43.0, 2.0, radius=1.0)]
     return (Pose2(12.0, 40.0, 0.0), Pose2(62.0, 40.0, 0.0), walls + central + hidden,
             "An alley 16 m wide; a large central obstacle hides one obstacle in each "
             "of the two gaps beside it.")
@@ -106,8 +108,9 @@ def _alleyway(rng: np.random.Generator) -> tuple[Pose2, Pose2, list[Obstacle], s
 
 def _offroad(rng: np.random.Generator) -> tuple[Pose2, Pose2, list[Obstacle], str]:
     trees = [Obstacle("cylinder", x, 25.0, 5.0, radius=0.9) for x in np.arange(6.0, 56.0, 2.2)]
-    field = [Obstacle("cylinder", 52.0, 33.0, 2.0, radius=1.2),
-             Obstacle("cylinder", 47.0, 38.0, 2.0, radius=1.2)]
+    # behind the row's end, on the line of a tight left turn into the field
+    field = [Obstacle("cylinder", 56.0, 30.0, 2.0, radius=1.2),
+             Obstacle("cylinder", 51.0, 35.0, 2.0, radius=1.2)]
     return (Pose2(8.0, 20.0, 0.0), Pose2(45.0, 46.0, math.pi / 2), trees + field,
             "A road beside a field behind a thin tree line; the vehicle drives to the "
             "row's end and turns sharply left into the field past obstacles it cannot "

@@ -87,19 +87,25 @@ def test_unseen_cells_keep_the_prior():
     assert (after.variance[state.observed] <= P.known_variance).all()  # the known disc
 
 
-def test_occluded_cells_in_view_are_inpainted_and_stay_uncertain():
+def test_occluded_cells_in_view_are_inpainted_from_the_ground_and_stay_uncertain():
     hm = np.zeros((400, 400), np.float32)
     hm[180:220, 240:250] = 2.0       # a wall 8 m ahead, 8 m wide, hides what is behind it
     hm[195:205, 280:290] = 1.0       # hidden obstacle behind it
     state = core.initial_map(P, 40.0, 40.0, 0.0)
     depth, pos, rot, base = frame(hm, 40.0, 40.0, 0.0)
     fused = core.fuse_depth(P, state, depth, CAM.intrinsics, pos, rot)
-    out = core.inpaint_occluded(P, fused, 40.0, 40.0, 0.0)
+    out = core.inpaint_occluded(P, fused, 40.0, 40.0, 0.0, 0.0)
     shadow = (slice(195, 205), slice(255, 275))      # behind the wall, inside the FOV
     assert not fused.observed[shadow].any()
     assert np.isfinite(out.mean).all()
     assert (out.variance[shadow] == P.prior_variance).all()
-    assert (out.mean[195:205, 251:255] > 0.5).all()   # filled from the wall, not left free
-    assert (out.mean[shadow] != 0.0).mean() > 0.9
+    # the wall is an occluder, not a source: the shadow is filled from the ground around
+    assert np.abs(out.mean[shadow]).max() < 0.15      # the face's lowest mixed pixels remain
+    # a low occluded step (below occluder_height_m) is a source
+    low = fused.mean.copy()
+    low[fused.observed & (low > 1.0)] = 0.3
+    out_low = core.inpaint_occluded(P, core.MapState(low, fused.variance, fused.observed),
+                                    40.0, 40.0, 0.0, 0.0)
+    assert (out_low.mean[195:205, 251:254] > 0.1).all()
     assert (out.mean[shadow] <= 2.0 + 1e-3).all()
     assert (out.mean[fused.observed] == fused.mean[fused.observed]).all()

@@ -14,7 +14,8 @@ Per cell a Gaussian N(mean, variance) of the ground elevation.
   `min_variance`.
 - Inpainting (`inpaint_occluded`, OpenCV Telea): cells inside the camera's
   field of view (range and angle) that have never been observed, i.e. occluded,
-  get their mean inpainted from their surroundings and keep the prior variance.
+  get their mean inpainted from the ground around them (occluders excluded)
+  and keep the prior variance.
 
 See docs/mapper.md for the noise model and the choices.
 """
@@ -45,6 +46,7 @@ class MapperParams:
     k_per_m: float
     min_variance: float
     inpaint_radius: int
+    occluder_height_m: float
     hfov_rad: float
     range_m: float
 
@@ -53,7 +55,8 @@ class MapperParams:
         m = cfg.mapper
         return cls(m.size_cells, m.resolution_m, origin, m.prior_variance, m.known_radius_m,
                    m.known_variance, m.noise_sigma0_m, m.noise_k_per_m, m.min_variance,
-                   m.inpaint_radius_cells, math.radians(cfg.sensor.hfov_deg), cfg.sensor.range_m)
+                   m.inpaint_radius_cells, m.occluder_height_m, math.radians(cfg.sensor.hfov_deg),
+                   cfg.sensor.range_m)
 
 
 @dataclass(frozen=True)
@@ -136,13 +139,17 @@ def fov_mask(p: MapperParams, x: float, y: float, yaw: float) -> tuple[np.ndarra
     return inside, rows, cols
 
 
-def inpaint_occluded(p: MapperParams, state: MapState, x: float, y: float, yaw: float
+def inpaint_occluded(p: MapperParams, state: MapState, x: float, y: float, z: float, yaw: float
                      ) -> MapState:
     """Telea-inpaint the mean of never-observed cells inside the field of view.
 
-    The window is padded by replication (so Telea has context at its edge) and
-    any non-finite value is filled before inpainting (NaNs would leak).
-    Variance is left at the prior: inpainting is a guess, not an observation.
+    Occluders (observed cells more than `occluder_height_m` above the robot's
+    ground z) are not sources: their height says nothing about what stands
+    behind them, so they enter Telea at the free-space value z and the shadow
+    is filled from the ground around it. The window is padded by replication
+    (so Telea has context at its edge) and any non-finite value is filled
+    before inpainting (NaNs would leak). Variance is left at the prior:
+    inpainting is a guess, not an observation.
     """
     inside, rows, cols = fov_mask(p, x, y, yaw)
     mask = inside & ~state.observed[rows, cols]
@@ -151,12 +158,14 @@ def inpaint_occluded(p: MapperParams, state: MapState, x: float, y: float, yaw: 
     window = np.array(state.mean[rows, cols], dtype=np.float32)
     bad = ~np.isfinite(window)
     if bad.any():
-        window[bad] = np.nanmedian(np.where(bad, np.nan, window)) if (~bad).any() else 0.0
+        window[bad] = np.nanmedian(np.where(bad, np.nan, window)) if (~bad).any() else z
+    source = np.where(state.observed[rows, cols] & (window > z + p.occluder_height_m),
+                      np.float32(z), window)
     # OpenCV's float32 Telea returns garbage (4.14 and 5.0 alike, docs/mapper.md):
     # inpaint a uint16 quantisation over the window's own range instead.
-    lo, hi = float(window[~mask].min()) if (~mask).any() else 0.0, float(window.max())
+    lo, hi = float(source.min()), float(source.max())
     scale = max(hi - lo, 1e-6) / 65535.0
-    q = np.clip(np.rint((window - lo) / scale), 0, 65535).astype(np.uint16)
+    q = np.clip(np.rint((source - lo) / scale), 0, 65535).astype(np.uint16)
     pad = p.inpaint_radius + 1
     src = cv2.copyMakeBorder(q, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
     m8 = cv2.copyMakeBorder(mask.astype(np.uint8), pad, pad, pad, pad, cv2.BORDER_CONSTANT,
@@ -173,4 +182,4 @@ def update(p: MapperParams, state: MapState, depth: np.ndarray, intrinsics: np.n
     """One frame: fuse, then inpaint the occluded part of the field of view."""
     fused = fuse_depth(p, state, depth, intrinsics, cam_position, cam_rotation)
     return inpaint_occluded(p, fused, float(base_pose[0]), float(base_pose[1]),
-                            float(base_pose[3]))
+                            float(base_pose[2]), float(base_pose[3]))
