@@ -26,6 +26,14 @@ log = logging.getLogger(__name__)
 CONTROLLER_COLORS = {"deterministic": "tab:red", "prescient": "tab:green", "va": "tab:blue"}
 
 
+def _save(fig, path: Path, dpi: int = 120, tight: bool = True) -> Path:
+    if tight:
+        fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
+
+
 def _groups(summary: list[dict[str, Any]], scenario: str) -> list[dict[str, Any]]:
     return [r for r in summary if r["scenario"] == scenario]
 
@@ -48,11 +56,7 @@ def plot_failures(summary: list[dict[str, Any]], out: Path) -> Path:
         ax.set_ylim(0, 100)
         ax.set_title(scenario)
         ax.legend(fontsize=8)
-    fig.tight_layout()
-    path = out / "failures.png"
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, out / "failures.png")
 
 
 def plot_time_to_goal(runs: list[dict[str, Any]], out: Path) -> Path:
@@ -70,11 +74,7 @@ def plot_time_to_goal(runs: list[dict[str, Any]], out: Path) -> Path:
         ax.set_xticks(np.arange(1, len(labels) + 1), labels, fontsize=8)
         ax.set_ylabel("time to goal, s (successful runs)")
         ax.set_title(scenario)
-    fig.tight_layout()
-    path = out / "time_to_goal.png"
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, out / "time_to_goal.png")
 
 
 def _scenario_background(ax, cfg: Config, scenario: str) -> None:
@@ -110,10 +110,7 @@ def plot_trajectories(cfg: Config, runs: list[dict[str, Any]], scenario: str, ou
         ax.set_ylabel("y, m")
     if line is not None:
         fig.colorbar(line, ax=axes[0].tolist(), label="speed, m/s")
-    path = out / f"trajectories_{scenario}.png"
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, out / f"trajectories_{scenario}.png", tight=False)
 
 
 def plot_solve_time(runs: list[dict[str, Any]], out: Path) -> Path:
@@ -128,11 +125,7 @@ def plot_solve_time(runs: list[dict[str, Any]], out: Path) -> Path:
     ax.set_xlabel("solve time per control tick, ms (first tick, with compilation, excluded)")
     ax.set_ylabel("ticks")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    path = out / "solve_time.png"
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, out / "solve_time.png")
 
 
 def plot_visibility(cfg: Config, scenario: str, samples: int, seed: int, out: Path) -> Path:
@@ -156,11 +149,7 @@ def plot_visibility(cfg: Config, scenario: str, samples: int, seed: int, out: Pa
             ax.set_title(f"{title}, t = {s['t']:.1f} s, surface cost {s['terms'][2]:.0f}, "
                          f"f_xt {s['u'][1]:.0f} N", fontsize=8)
     fig.suptitle(f"{scenario}, VA-MPPI K={samples}: {result.outcome}")
-    fig.tight_layout()
-    path = out / f"visibility_{scenario}.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, out / f"visibility_{scenario}.png", dpi=110)
 
 
 def plot_all(cfg: Config, runs: list[dict[str, Any]], summary: list[dict[str, Any]],

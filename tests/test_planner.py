@@ -126,3 +126,16 @@ def test_monte_carlo_surface_cost_agrees_with_the_closed_form(rng):
     assert np.abs(mc - cf).max() < 5 * se
     assert abs(mc.mean() - cf.mean()) < 5 * se / np.sqrt(cf.size)
     assert 0.2 < cf.mean() < 4.8                 # neither all-0 nor all-5: the test has teeth
+
+
+def test_non_finite_costs_get_no_weight_and_never_poison_the_nominal():
+    m = flat_map()
+    nan_map = MapView(m.mean.at[:, :].set(jnp.nan), m.variance, m.origin, m.resolution)
+    qs = mppi.initial_state(PP, 0)
+    nom = jnp.full((PP.horizon, 2), 0.1, jnp.float32)
+    qs = qs._replace(nominal=nom)
+    qs2, out = mppi.solve(PP, qs, np.array([3.0, 0, 0, 20, 40, 0]), np.zeros(2),
+                          np.array([60.0, 40.0, 0.0]), nan_map.mean, nan_map.variance,
+                          nan_map.origin, 0.2)
+    assert np.isfinite(np.asarray(out.controls)).all()
+    assert np.isfinite(np.asarray(qs2.nominal)).all()

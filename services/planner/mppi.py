@@ -126,13 +126,18 @@ def _iteration(params: PlannerParams, state: PlannerState, x0, u_prev, goal, m: 
     terms = jax.vmap(rollout_cost, in_axes=(None, 0, 0, None, None, 0, 0))(
         params.cost, states, xdots, goal, m, qvar, jax.random.split(mc, k))
     cost = jnp.sum(terms, axis=-1)
-    cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)
+    finite = jnp.isfinite(cost)
+    cost = jnp.where(finite, cost, jnp.inf)
     j_min = jnp.min(cost)
-    w = jnp.exp(-(cost - j_min) / params.temperature)
-    w = w / jnp.sum(w)
+    # a rollout with a non-finite cost gets no weight; if none is finite the nominal stays
+    w = jnp.where(finite, jnp.exp(-(cost - jnp.where(finite.any(), j_min, 0.0))
+                                  / params.temperature), 0.0)
+    total = jnp.sum(w)
+    w = jnp.where(total > 0, w / jnp.where(total > 0, total, 1.0), 0.0)
     nominal = state.nominal + jnp.einsum("k,kni->ni", w, applied - state.nominal[None])
     r = params.rollouts_published
-    info = (states[:r, :, 3:5], cost[:r], j_min, jnp.mean(jnp.where(jnp.isfinite(cost), cost, 0)))
+    j_mean = jnp.sum(jnp.where(finite, cost, 0.0)) / jnp.maximum(jnp.sum(finite), 1)
+    info = (states[:r, :, 3:5], cost[:r], j_min, j_mean)
     return PlannerState(nominal, key), info
 
 
