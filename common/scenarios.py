@@ -94,16 +94,17 @@ def _open_field(rng: np.random.Generator) -> tuple[Pose2, Pose2, list[Obstacle],
 
 
 def _alleyway(rng: np.random.Generator) -> tuple[Pose2, Pose2, list[Obstacle], str]:
-    walls = [Obstacle("box", 40.0, 31.0, 3.0, half_x=32.0, half_y=1.0),
-             Obstacle("box", 40.0, 49.0, 3.0, half_x=32.0, half_y=1.0)]
-    central = [Obstacle("box", 36.0, 40.0, 2.5, half_x=2.5, half_y=3.0)]
-    # just behind the block's corners: hidden from the start, revealed only once the
-    # vehicle clears a corner, on the line a fast vehicle takes back to the centre
-    hidden = [Obstacle("cylinder", 42.5, 37.0, 2.0, radius=1.0),
-              Obstacle("cylinder", 42.5, 43.0, 2.0, radius=1.0)]
+    walls = [Obstacle("box", 40.0, 32.0, 3.0, half_x=32.0, half_y=1.0),
+             Obstacle("box", 40.0, 48.0, 3.0, half_x=32.0, half_y=1.0)]
+    central = [Obstacle("box", 36.0, 40.0, 2.5, half_x=2.5, half_y=3.5)]
+    # behind the block, one on each side: hidden from the start and from the gaps
+    # until the vehicle clears the block, on the line a fast vehicle takes back
+    # toward the centre
+    hidden = [Obstacle("cylinder", 45.0, 36.8, 2.0, radius=1.2),
+              Obstacle("cylinder", 45.0, 43.2, 2.0, radius=1.2)]
     return (Pose2(12.0, 40.0, 0.0), Pose2(62.0, 40.0, 0.0), walls + central + hidden,
-            "An alley 16 m wide; a large central obstacle hides one obstacle in each "
-            "of the two gaps beside it.")
+            "An alley 14 m wide; a large central obstacle leaves a 3.5 m gap on each side "
+            "and hides one obstacle behind each of its sides.")
 
 
 def _offroad(rng: np.random.Generator) -> tuple[Pose2, Pose2, list[Obstacle], str]:
