@@ -169,12 +169,6 @@ class TypedPublisher(Generic[M]):
         self.health.messages_out += 1
         return msg
 
-    def ref(self, msg: Message) -> InputRef:
-        return InputRef(self.key, msg.header.seq, msg.header.stamp)
-
-    def undeclare(self) -> None:
-        self._pub.undeclare()
-
 
 def ref_of(key: str, msg: Message) -> InputRef:
     """The InputRef naming `msg` as received on `key`."""

@@ -313,11 +313,3 @@ def decode(payload: bytes, expected: type[M] | None = None) -> M:
         raise _fail(schema, sorted(extra)[0], "is not in the schema")
     return cls(**kwargs)  # type: ignore[return-value]
 
-
-def schema_of(payload: bytes) -> str | None:
-    """The schema name of a payload, or None when it is not a message map."""
-    try:
-        raw = msgpack.unpackb(payload, raw=False)
-    except Exception:
-        return None
-    return raw.get("schema") if isinstance(raw, dict) else None

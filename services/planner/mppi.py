@@ -21,10 +21,9 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from common.config import Config, VehicleConfig
-from services.planner.costs import TERMS, CostParams, MapView, query_cells, rollout_cost
+from services.planner.costs import CostParams, MapView, query_cells, rollout_cost
 from services.planner.visibility import VisibilityParams, batched_decayed_variance
 from services.plant.dynamics import ControlLimits, clamp_control, derivatives, integrate
 
@@ -175,6 +174,3 @@ def solve(params: PlannerParams, state: PlannerState, x0: Any, u_prev: Any, goal
              jnp.asarray(variance, jnp.float32), jnp.asarray(origin, jnp.float32),
              resolution=float(resolution))
 
-
-def term_dict(terms: Any) -> dict[str, float]:
-    return {name: float(v) for name, v in zip(TERMS, np.asarray(terms), strict=True)}
