@@ -47,14 +47,6 @@ class Cores:
         return np.array([g.x, g.y, g.yaw])
 
 
-def planner_map(cores: Cores, m: mapper.MapState) -> tuple[np.ndarray, np.ndarray]:
-    """The (mean, variance) the configured controller plans on."""
-    if cores.planner.controller == "prescient":
-        truth = cores.scenario.heightmap
-        return truth, np.zeros_like(truth)
-    return m.mean, m.variance
-
-
 @dataclass
 class EpisodeResult:
     outcome: str
@@ -94,7 +86,8 @@ def run_episode(cfg: Config, cores: Cores | None = None,
                                         x[S.X], x[S.Y], z, x[S.PSI])
         m = mapper.update(cores.mapper, m, depth, cores.camera.intrinsics, pos, rot,
                           np.array([x[S.X], x[S.Y], z, x[S.PSI]]))
-        mean, var = planner_map(cores, m)
+        mean, var = mppi.planning_map(cores.planner, cores.scenario.heightmap, m.mean,
+                                      m.variance)
         if tick > 0:
             qs = mppi.advance(qs, 1)
         t_solve = time.perf_counter()

@@ -73,6 +73,14 @@ def initial_state(params: PlannerParams, seed: int) -> PlannerState:
     return PlannerState(jnp.zeros((params.horizon, 2), jnp.float32), jax.random.PRNGKey(seed))
 
 
+def planning_map(params: PlannerParams, truth: Any, mean: Any, variance: Any
+                 ) -> tuple[Any, Any]:
+    """The (mean, variance) the controller plans on: the scenario's true heightmap for
+    prescient, the mapper's map otherwise. Only VA-MPPI reads the variance
+    (`query_variance`): deterministic and prescient plan as if every cell were certain."""
+    return (truth, variance) if params.controller == "prescient" else (mean, variance)
+
+
 def advance(state: PlannerState, ticks: int) -> PlannerState:
     """Warm start: shift the nominal by `ticks` steps, repeating the last control."""
     if ticks <= 0:

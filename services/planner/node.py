@@ -28,7 +28,6 @@ def main(cfg: Config, instance: str = "0", stop: threading.Event | None = None) 
     params = mppi.PlannerParams.from_config(cfg)
     scn = scenario_of(cfg)
     goal = np.array([scn.goal.x, scn.goal.y, scn.goal.yaw])
-    truth = scn.heightmap if params.controller == "prescient" else None
     lockstep = cfg.episode.clock == "lockstep"
     dt = params.dt
     with Node(cfg.bus, cfg.episode.vehicle, "planner", instance, cfg.to_dict()) as node:
@@ -66,8 +65,7 @@ def main(cfg: Config, instance: str = "0", stop: threading.Event | None = None) 
             else:
                 qs = mppi.advance(qs, int(round((t - last_t) / dt)))
             last_t = t
-            mean, var = (truth, np.zeros_like(truth)) if truth is not None else (m.mean,
-                                                                               m.variance)
+            mean, var = mppi.planning_map(params, scn.heightmap, m.mean, m.variance)
             t_solve = time.perf_counter()
             qs, out = mppi.solve(params, qs, st.x, st.u_applied, goal, mean, var, m.origin,
                                  m.resolution)

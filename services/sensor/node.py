@@ -36,10 +36,10 @@ def main(cfg: Config, instance: str = "0", stop: threading.Event | None = None) 
             if st is None:
                 continue
             t = st.header.stamp
-            if t < next_frame - 1e-6:
-                continue
             if t < 1e-9:
                 next_frame = 0.0    # a new episode restarts the frame clock
+            if t < next_frame - 1e-6:
+                continue
             x = st.x
             depth, pos, rot = core.render(cam, scn.heightmap, scn.origin, scn.resolution,
                                           x[S.X], x[S.Y], st.z, x[S.PSI])
