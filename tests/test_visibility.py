@@ -6,6 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from common.config import load_config
+from services.planner.costs import OFFSETS
 from services.planner.visibility import VisibilityParams, decayed_variance, visible_points
 
 CFG = load_config(overrides=['planner.controller="va"'])
@@ -74,13 +75,17 @@ def test_decayed_variance_matches_the_dense_float64_reference(rng):
     psi = np.cumsum(rng.normal(size=steps) * 0.15) + rng.uniform(-0.3, 0.3)
     states = np.zeros((steps, 6), np.float32)
     states[:, 3], states[:, 4], states[:, 5] = x, y, psi
-    rows = rng.integers(0, n, (steps, 40)).astype(np.int32)
-    cols = rng.integers(0, n, (steps, 40)).astype(np.int32)
-    rows[:, :20] = np.clip((y[:, None] / 0.2 + rng.integers(-20, 20, (steps, 20))), 0, n - 1)
-    cols[:, :20] = np.clip((x[:, None] / 0.2 + rng.integers(0, 60, (steps, 20))), 0, n - 1)
+    # footprint cells: half anywhere, half along the path ahead (where counts build up);
+    # the update reads the five OFFSETS cells of each
+    rows = rng.integers(1, n - 1, (steps, 8)).astype(np.int32)
+    cols = rng.integers(1, n - 1, (steps, 8)).astype(np.int32)
+    rows[:, :4] = np.clip((y[:, None] / 0.2 + rng.integers(-20, 20, (steps, 4))), 1, n - 2)
+    cols[:, :4] = np.clip((x[:, None] / 0.2 + rng.integers(0, 60, (steps, 4))), 1, n - 2)
     got = np.asarray(decayed_variance(VP, jnp.asarray(mean), jnp.asarray(variance),
                                       jnp.zeros(2), 0.2, jnp.asarray(states), jnp.asarray(rows),
-                                      jnp.asarray(cols)))
+                                      jnp.asarray(cols), OFFSETS))
+    rows = np.concatenate([rows + dr for dr, _ in OFFSETS], axis=1)
+    cols = np.concatenate([cols + dc for _, dc in OFFSETS], axis=1)
     seen = []
     for st in states:
         k_row, k_col, k_vis = (np.asarray(a).reshape(VP.rays, VP.points) for a in visible_points(
@@ -116,3 +121,34 @@ def test_blocked_rays_stop_at_the_first_blocker():
         seen = col[r][vis[r]]
         assert seen.max() <= 114 and (seen >= 110).any()   # the wall is seen, nothing behind
     assert vis[0].all() and vis[-1].all()                  # the edge rays pass beside it
+
+
+def test_batched_update_equals_one_trajectory_at_a_time(rng):
+    """The count map is shared by the trajectories in turn and cleaned after each:
+    nothing of one may leak into the next, whatever the chunking."""
+    import dataclasses
+
+    from services.planner.visibility import batched_decayed_variance
+    n, k, steps = 100, 5, 8
+    mean = (rng.normal(size=(n, n)) * 0.1).astype(np.float32)
+    mean[40:45, 60:64] += 2.0
+    variance = rng.uniform(0.5, 3.0, (n, n)).astype(np.float32)
+    states = np.zeros((k, steps, 6), np.float32)
+    states[:, :, 3] = 4.0 + np.cumsum(rng.uniform(0.3, 1.0, (k, steps)), axis=1)
+    states[:, :, 4] = 9.0 + rng.normal(size=(k, 1)) + np.cumsum(rng.normal(size=(k, steps)) * 0.1,
+                                                               axis=1)
+    states[:, :, 5] = rng.normal(size=(k, 1)) * 0.2
+    rows = np.clip(states[:, :, 4:5] / 0.2 + rng.integers(-8, 8, (k, steps, 6)), 1, n - 2)
+    cols = np.clip(states[:, :, 3:4] / 0.2 + rng.integers(0, 40, (k, steps, 6)), 1, n - 2)
+    rows, cols = rows.astype(np.int32), cols.astype(np.int32)
+    args = (jnp.asarray(mean), jnp.asarray(variance), jnp.zeros(2), 0.2)
+    one = np.stack([np.asarray(decayed_variance(VP, *args, jnp.asarray(states[j]),
+                                                jnp.asarray(rows[j]), jnp.asarray(cols[j]),
+                                                OFFSETS)) for j in range(k)])
+    prior = np.concatenate([variance[rows + dr, cols + dc] for dr, dc in OFFSETS], axis=-1)
+    assert (one < prior * 0.5).mean() > 0.05                  # the trajectories did see
+    for chunk in (1, 2, 8):
+        vp = dataclasses.replace(VP, chunk=chunk)
+        got = np.asarray(batched_decayed_variance(vp, *args, jnp.asarray(states),
+                                                  jnp.asarray(rows), jnp.asarray(cols), OFFSETS))
+        np.testing.assert_allclose(got, one, rtol=1e-6)    # a leak would be O(1)

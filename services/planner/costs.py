@@ -94,25 +94,30 @@ def footprint_world(c: CostParams, states: Any) -> tuple[Any, Any]:
                          jnp)
 
 
-# the five cells read per footprint point: centre, +x, -x, +y, -y
-_OFFSETS = ((0, 0), (0, 1), (0, -1), (1, 0), (-1, 0))
+# the five cells read per footprint point: centre, +x, -x, +y, -y (row, col offsets)
+OFFSETS = ((0, 0), (0, 1), (0, -1), (1, 0), (-1, 0))
 
 
-def query_cells(c: CostParams, m: MapView, states: Any) -> tuple[Any, Any, Any]:
-    """Cells the surface cost reads along a rollout, step-major.
-
-    Returns rows, cols (N+1, 5 P) int (the five cells of every footprint point:
-    centre, +x, -x, +y, -y) and `outside` (N+1, P), footprint points off the map.
-    """
+def footprint_cells(c: CostParams, m: MapView, states: Any) -> tuple[Any, Any, Any]:
+    """The cells of the footprint points along a rollout: row, col (N+1, P) int, kept
+    one cell inside the map, and `outside` (N+1, P), points off the map."""
     h, w = m.mean.shape
     px, py = footprint_world(c, states)
     col = jnp.floor((px - m.origin[0]) / m.resolution).astype(jnp.int32)
     row = jnp.floor((py - m.origin[1]) / m.resolution).astype(jnp.int32)
     outside = (col < 1) | (col > w - 2) | (row < 1) | (row > h - 2)
-    col = jnp.clip(col, 1, w - 2)
-    row = jnp.clip(row, 1, h - 2)
-    rows = jnp.concatenate([row + dr for dr, _ in _OFFSETS], axis=1)
-    cols = jnp.concatenate([col + dc for _, dc in _OFFSETS], axis=1)
+    return jnp.clip(row, 1, h - 2), jnp.clip(col, 1, w - 2), outside
+
+
+def query_cells(c: CostParams, m: MapView, states: Any) -> tuple[Any, Any, Any]:
+    """Cells the surface cost reads along a rollout, step-major.
+
+    Returns rows, cols (N+1, 5 P) int (the five cells of every footprint point,
+    `OFFSETS`, offset-major) and `outside` (N+1, P), footprint points off the map.
+    """
+    row, col, outside = footprint_cells(c, m, states)
+    rows = jnp.concatenate([row + dr for dr, _ in OFFSETS], axis=1)
+    cols = jnp.concatenate([col + dc for _, dc in OFFSETS], axis=1)
     return rows, cols, outside
 
 

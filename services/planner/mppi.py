@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 
 from common.config import Config, VehicleConfig
-from services.planner.costs import CostParams, MapView, query_cells, rollout_cost
+from services.planner.costs import OFFSETS, CostParams, MapView, footprint_cells, rollout_cost
 from services.planner.visibility import VisibilityParams, batched_decayed_variance
 from services.plant.dynamics import ControlLimits, clamp_control, derivatives, integrate
 
@@ -112,11 +112,11 @@ def query_variance(params: PlannerParams, m: MapView, states: jax.Array) -> jax.
     certain (zero variance); VA-MPPI decays the map variance by what each rollout
     would have seen before each step (services.planner.visibility).
     """
-    rows, cols, _ = jax.vmap(query_cells, in_axes=(None, None, 0))(params.cost, m, states)
+    rows, cols, _ = jax.vmap(footprint_cells, in_axes=(None, None, 0))(params.cost, m, states)
     if params.controller != "va":
-        return jnp.zeros(rows.shape, jnp.float32)
+        return jnp.zeros(rows.shape[:-1] + (len(OFFSETS) * rows.shape[-1],), jnp.float32)
     return batched_decayed_variance(params.visibility, m.mean, m.variance, m.origin,
-                                    m.resolution, states, rows, cols)
+                                    m.resolution, states, rows, cols, OFFSETS)
 
 
 def _iteration(params: PlannerParams, state: PlannerState, x0, u_prev, goal, m: MapView):

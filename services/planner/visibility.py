@@ -74,83 +74,134 @@ class VisibilityParams:
         return np.exp(-(x * x + y * y) / (2 * s2)) / (2 * np.pi * s2)
 
 
-def visible_points(vp: VisibilityParams, mean: Any, origin: Any, resolution: float,
-                   state: Any) -> tuple[Any, Any, Any]:
-    """Ray points of one pose: (row, col) int (M,), visible (M,) bool; M = rays * points."""
-    h, w = mean.shape
+def ray_cells(vp: VisibilityParams, origin: Any, resolution: float, states: Any
+              ) -> tuple[Any, Any]:
+    """Cells (row, col) int (..., M) of the ray points of poses `states` (..., 6);
+    M = rays * points, ray-major; unclipped (may lie off the map)."""
     grid = jnp.asarray(vp.ray_grid(), jnp.float32)
-    c, s = jnp.cos(state[S.PSI]), jnp.sin(state[S.PSI])
-    px = state[S.X] + c * grid[:, 0] - s * grid[:, 1]
-    py = state[S.Y] + s * grid[:, 0] + c * grid[:, 1]
-    col = jnp.floor((px - origin[0]) / resolution).astype(jnp.int32)
-    row = jnp.floor((py - origin[1]) / resolution).astype(jnp.int32)
+    x, y, psi = (states[..., i, None] for i in (S.X, S.Y, S.PSI))
+    c, s = jnp.cos(psi), jnp.sin(psi)
+    px = x + c * grid[:, 0] - s * grid[:, 1]
+    py = y + s * grid[:, 0] + c * grid[:, 1]
+    return (jnp.floor((py - origin[1]) / resolution).astype(jnp.int32),
+            jnp.floor((px - origin[0]) / resolution).astype(jnp.int32))
+
+
+def first_blocker(vp: VisibilityParams, mean: Any, origin: Any, resolution: float,
+                  states: Any) -> Any:
+    """Index along each ray (..., rays) int of its first blocking point, `points` if
+    none: a point higher than the ground under the pose plus h, or off the map."""
+    h, w = mean.shape
+    row, col = ray_cells(vp, origin, resolution, states)
     inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
-    elev = mean[jnp.clip(row, 0, h - 1), jnp.clip(col, 0, w - 1)]
-    vr = jnp.clip(jnp.floor((state[S.Y] - origin[1]) / resolution).astype(jnp.int32), 0, h - 1)
-    vc = jnp.clip(jnp.floor((state[S.X] - origin[0]) / resolution).astype(jnp.int32), 0, w - 1)
-    blocker = (elev > mean[vr, vc] + vp.height_m) | ~inside      # off the map blocks too
-    blocker = blocker.reshape(vp.rays, vp.points)
-    before = jnp.cumsum(blocker, axis=1) - blocker                # blockers strictly before
-    visible = (before == 0).reshape(-1) & inside
-    return row, col, visible
+    flat_mean = mean.reshape(-1)
+    elev = jnp.take(flat_mean, jnp.clip(row, 0, h - 1) * w + jnp.clip(col, 0, w - 1))
+    x, y = states[..., S.X, None], states[..., S.Y, None]
+    vr = jnp.clip(jnp.floor((y - origin[1]) / resolution).astype(jnp.int32), 0, h - 1)
+    vc = jnp.clip(jnp.floor((x - origin[0]) / resolution).astype(jnp.int32), 0, w - 1)
+    blocker = (elev > jnp.take(flat_mean, vr * w + vc) + vp.height_m) | ~inside
+    blocker = blocker.reshape(blocker.shape[:-1] + (vp.rays, vp.points))
+    # a min over indices, not argmax or cumsum: both are several times slower on XLA:CPU
+    return jnp.min(jnp.where(blocker, jnp.arange(vp.points), vp.points), axis=-1)
+
+
+def seen(vp: VisibilityParams, shape: tuple[int, int], row: Any, col: Any, first: Any) -> Any:
+    """Visible (..., M) bool: on the map and not after its ray's first blocker (the
+    blocker itself is seen)."""
+    h, w = shape
+    before = (jnp.arange(vp.points) <= first[..., None]).reshape(row.shape)
+    return before & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+
+
+def visible_points(vp: VisibilityParams, mean: Any, origin: Any, resolution: float,
+                   states: Any) -> tuple[Any, Any, Any]:
+    """Ray points of poses `states` (..., 6): (row, col) int (..., M), visible (..., M)
+    bool; M = rays * points, ray-major. Vectorised over any leading axes."""
+    row, col = ray_cells(vp, origin, resolution, states)
+    first = first_blocker(vp, mean, origin, resolution, states)
+    return row, col, seen(vp, mean.shape, row, col, first)
+
+
+def offset_kernels(vp: VisibilityParams, offsets: tuple[tuple[int, int], ...]) -> np.ndarray:
+    """(S*S, len(offsets)) matrix: a patch of S = splat_size + 2 max|offset| raw counts
+    around a footprint cell, times column k, is the splatted count at cell + offsets[k]."""
+    reach = max(max(abs(a), abs(b)) for a, b in offsets)
+    size = vp.splat_size + 2 * reach
+    kern = vp.kernel()
+    out = np.zeros((size, size, len(offsets)))
+    for k, (dr, dc) in enumerate(offsets):
+        r0, c0 = reach + dr, reach + dc              # the kernel centred on cell + offset
+        out[r0:r0 + vp.splat_size, c0:c0 + vp.splat_size, k] = kern
+    return out.reshape(size * size, len(offsets))
 
 
 def batched_decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, origin: Any,
-                             resolution: float, states: Any, rows: Any, cols: Any) -> Any:
-    """Variance K trajectories meet at their query cells: states (K, N+1, 6), rows/cols
-    (K, N+1, Q) int, step-major; step i's queries see the points of poses 0 .. i-1 only.
+                             resolution: float, states: Any, rows: Any, cols: Any,
+                             offsets: tuple[tuple[int, int], ...]) -> Any:
+    """Variance K trajectories meet at the cells around their footprint points.
 
-    Every pose's visible points are found at once, vectorised over K and N. Then,
-    per trajectory, a scan over the horizon carries its raw count map: step i adds
-    pose i-1's points, then reads step i's query cells through a 9 x 9 window
-    (splat on read). Adding before reading lets XLA update the carried map in
-    place (reading first made it copy the map every step). Trajectories go
-    `chunk` at a time (`lax.map` over chunks, `vmap` within).
+    states (K, N+1, 6); rows/cols (K, N+1, P) int, the footprint points' cells
+    (at least `max|offset|` inside the map); returns (K, N+1, len(offsets) * P),
+    offset-major: block k is the cells rows + offsets[k][0], cols + offsets[k][1].
+    Step i sees the points of poses 0 .. i-1 only.
+
+    The visible points of poses 0 .. N-1 are found at once, vectorised over K and
+    N. Then one raw count map (visible points per cell, unsplatted) goes through
+    the trajectories in turn (`lax.scan`; `chunk` trajectories side by side on an
+    accelerator): for each, a scan over the horizon adds pose i-1's points, reads
+    an 11 x 11 patch around each footprint cell and turns it into the splatted
+    counts at the five cells with one small matmul (splat on read). Adding
+    before reading lets XLA update the carried map in place. After a trajectory
+    its cells are set back to zero, so the map is never cleared whole.
     """
     h, w = mean.shape
-    pad = vp.splat_size // 2
+    k_traj = rows.shape[0]
+    reach = max(max(abs(a), abs(b)) for a, b in offsets)
+    pad = vp.splat_size // 2 + reach
     wp = w + 2 * pad
-    kern = jnp.asarray(vp.kernel(), jnp.float32)
-    off = jnp.arange(-pad, pad + 1)
-    window = off[:, None] * wp + off[None, :]                    # (size, size) flat offsets
+    weights = jnp.asarray(offset_kernels(vp, offsets) * vp.count_value, jnp.float32)
+    o = jnp.arange(-pad, pad + 1)
+    patch = (o[:, None] * wp + o[None, :]).reshape(-1)           # (S*S,) flat offsets
 
-    row, col, vis = jax.vmap(jax.vmap(
-        lambda st: visible_points(vp, mean, origin, resolution, st)))(states)   # (K, N+1, M)
-    flat = (row + pad) * wp + col + pad
-    add = jnp.where(vis, jnp.float32(vp.count_value), 0.0)
-    flat = jnp.concatenate([jnp.zeros_like(flat[:, :1]), flat[:, :-1]], axis=1)  # pose i-1
-    add = jnp.concatenate([jnp.zeros_like(add[:, :1]), add[:, :-1]], axis=1)
-    qr, qc = jnp.clip(rows, 0, h - 1), jnp.clip(cols, 0, w - 1)
-    centre = (qr + pad) * wp + qc + pad
-    prior = variance[qr, qc]
+    row, col, vis = visible_points(vp, mean, origin, resolution, states[:, :-1])  # (K, N, M)
+    flat = jnp.where(vis, (row + pad) * wp + col + pad, (h + 2 * pad) * wp)  # unseen: dropped
 
-    def one(fl, ad, ce, q):
-        def step(counts, inp):
-            f1, a1, c1 = inp
-            counts = counts.at[f1].add(a1, mode="drop")
-            return counts, jnp.sum(counts[c1[:, None, None] + window] * kern, axis=(1, 2))
+    centre = (jnp.clip(rows, reach, h - 1 - reach) + pad) * wp + jnp.clip(cols, reach,
+                                                                           w - 1 - reach) + pad
+    qr = jnp.concatenate([rows + dr for dr, _ in offsets], axis=-1)
+    qc = jnp.concatenate([cols + dc for _, dc in offsets], axis=-1)
+    prior = jnp.take(variance.reshape(-1), jnp.clip(qr, 0, h - 1) * w + jnp.clip(qc, 0, w - 1))
 
-        _, c_splat = jax.lax.scan(step, jnp.zeros(((h + 2 * pad) * wp,), jnp.float32),
-                                  (fl, ad, ce))
-        return q * jnp.exp(-vp.gamma * c_splat)
+    def counts_of(counts, fl, ce):
+        """One trajectory: fl (N, M) its poses' points, ce (N+1, P) its footprint cells."""
+        def step(c, inp):
+            f1, c1 = inp
+            c = c.at[f1].add(1.0, mode="drop")
+            return c, (c[c1[:, None] + patch] @ weights).T.reshape(-1)  # (5 P,) offset-major
 
-    k = states.shape[0]
-    chunk = vp.chunk or (1 if jax.default_backend() == "cpu" else 256)
-    chunk = max(1, min(chunk, k))
-    n_chunks = -(-k // chunk)
+        counts, later = jax.lax.scan(step, counts, (fl, ce[1:]))
+        counts = counts.at[fl.reshape(-1)].set(0.0, mode="drop")       # clean for the next
+        return counts, jnp.concatenate([jnp.zeros_like(later[:1]), later])  # step 0: none seen
+
+    chunk = vp.chunk or (8 if jax.default_backend() == "cpu" else 256)
+    chunk = max(1, min(chunk, k_traj))
+    n_chunks = -(-k_traj // chunk)
 
     def split(a):
-        extra = n_chunks * chunk - k
+        extra = n_chunks * chunk - k_traj
         a = jnp.concatenate([a, jnp.repeat(a[-1:], extra, axis=0)]) if extra else a
         return a.reshape((n_chunks, chunk) + a.shape[1:])
 
-    out = jax.lax.map(lambda args: jax.vmap(one)(*args),
-                      (split(flat), split(add), split(centre), split(prior)))
-    return out.reshape((n_chunks * chunk,) + out.shape[2:])[:k]
+    maps = jnp.zeros((chunk, (h + 2 * pad) * wp), jnp.float32)
+    _, c = jax.lax.scan(lambda m, a: jax.vmap(counts_of)(m, *a), maps,
+                        (split(flat), split(centre)))
+    c = c.reshape((n_chunks * chunk,) + c.shape[2:])[:k_traj]
+    return prior * jnp.exp(-vp.gamma * c)
 
 
 def decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, origin: Any,
-                     resolution: float, states: Any, rows: Any, cols: Any) -> Any:
-    """`batched_decayed_variance` for one trajectory: states (N+1, 6), rows/cols (N+1, Q)."""
+                     resolution: float, states: Any, rows: Any, cols: Any,
+                     offsets: tuple[tuple[int, int], ...]) -> Any:
+    """`batched_decayed_variance` for one trajectory: states (N+1, 6), rows/cols (N+1, P)."""
     return batched_decayed_variance(vp, mean, variance, origin, resolution, states[None],
-                                    rows[None], cols[None])[0]
+                                    rows[None], cols[None], offsets)[0]
