@@ -107,8 +107,10 @@ def experiment(cfg: Config, scenarios: list[str], controllers: list[str], sample
     out.mkdir(parents=True, exist_ok=True)
     runs_path = out / "runs.jsonl"
     done = {tuple(r[k] for k in KEY_FIELDS) for r in read_runs(runs_path)}
-    todo = [(s, c, k, seed + i) for s in scenarios for c in controllers for k in samples
-            for i in range(runs) if (s, c, k, seed + i) not in done]
+    # round robin: every combination gets its i-th run before any gets its (i+1)-th,
+    # so an experiment stopped early is still balanced
+    todo = [(s, c, k, seed + i) for i in range(runs) for s in scenarios for c in controllers
+            for k in samples if (s, c, k, seed + i) not in done]
     log.info("%d run(s) to do, %d already in %s", len(todo), len(done), runs_path)
     cores_cache: dict[tuple, Cores] = {}
     bar = tqdm(todo, desc="experiment", unit="run", disable=not progress, dynamic_ncols=True)
@@ -117,7 +119,8 @@ def experiment(cfg: Config, scenarios: list[str], controllers: list[str], sample
                                  "planner.samples": k, "episode.seed": s})
         ck = (scenario, controller, k)
         if ck not in cores_cache:
-            cores_cache.clear()          # one set of compiled cores at a time
+            if len(cores_cache) >= 8:    # the planner keeps 8 compiled solvers (mppi.solver)
+                cores_cache.clear()
             cores_cache[ck] = Cores.from_config(run_cfg)
         result = run_episode(run_cfg, cores_cache[ck])
         _append(runs_path, run_record(run_cfg, result))

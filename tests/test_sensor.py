@@ -74,7 +74,7 @@ def test_depth_matches_a_brute_force_float64_march(rng):
                 agree += (ref == 0.0) == (got == 0.0)
                 continue
             hits += 1
-            # a crossing the 0.1 m march skipped (a grazing ray over an edge) is allowed
+            # a crossing the march skipped (a grazing ray over an edge) is allowed
             # to land further along the ray; elsewhere the secant is within 2 cm
             agree += abs(got - ref) < 0.02 + 2e-3 * ref
     total = hits + misses
