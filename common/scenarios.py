@@ -109,11 +109,12 @@ def _alleyway(rng: np.random.Generator) -> tuple[Pose2, Pose2, list[Obstacle], s
 
 def _offroad(rng: np.random.Generator) -> tuple[Pose2, Pose2, list[Obstacle], str]:
     trees = [Obstacle("cylinder", x, 25.0, 5.0, radius=0.9) for x in np.arange(6.0, 56.0, 2.2)]
-    # rocks in the open past the row's end, seen from the road: they leave a gap
-    # (x 55.8-58.2) beside the last tree, the short way into the field ...
+    # rocks in the open past the row's end, seen as the vehicle starts its turn there:
+    # they leave a gap (x 55.8-58.2) beside the last tree, the short way in ...
     rocks = [Obstacle("cylinder", x, 33.0, 2.0, radius=1.3) for x in (59.5, 62.0, 64.5)]
-    # ... which two obstacles behind the trees close: invisible from the road, seen
-    # only once the vehicle has turned into the gap; the way in is round the rocks
+    # ... which two obstacles behind the trees close: invisible from the road and the
+    # start of the turn, seen only once the vehicle faces the gap (about 8 m off);
+    # the way in is round the rocks
     hidden = [Obstacle("cylinder", 55.5, 32.0, 2.0, radius=1.0),
               Obstacle("cylinder", 52.0, 37.0, 2.0, radius=1.2)]
     return (Pose2(8.0, 20.0, 0.0), Pose2(45.0, 46.0, math.pi / 2), trees + rocks + hidden,

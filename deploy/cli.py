@@ -21,6 +21,7 @@ import os
 import signal
 import sys
 import threading
+from pathlib import Path
 from typing import Any
 
 from common.config import Config, ConfigError, load_config
@@ -113,6 +114,21 @@ def cmd_run(args: argparse.Namespace, cfg: Config) -> int:
     return 0 if result.outcome == "success" else 1
 
 
+def cmd_scenario(args: argparse.Namespace, cfg: Config) -> int:
+    """The scenario's start, goal and obstacles as JSON; --plot writes its picture."""
+    from dataclasses import asdict
+
+    from common.scenarios import scenario_of
+    scn = scenario_of(cfg)
+    print(json.dumps({"name": scn.name, "seed": scn.seed, "description": scn.description,
+                      "start": asdict(scn.start), "goal": asdict(scn.goal),
+                      "obstacles": [asdict(o) for o in scn.obstacles]}, indent=1))
+    if args.plot:
+        from deploy.plots import plot_scenario
+        plot_scenario(cfg, scn.name, Path(args.plot))
+    return 0
+
+
 def cmd_router(args: argparse.Namespace, cfg: Config) -> int:
     """A standalone router until Ctrl-C (services on several machines connect to it)."""
     from common.bus import open_session
@@ -145,7 +161,6 @@ def cmd_health(args: argparse.Namespace, cfg: Config) -> int:
 
 
 def cmd_experiment(args: argparse.Namespace, cfg: Config) -> int:
-    from pathlib import Path
 
     from deploy.experiment import experiment, parse_list
     summary = experiment(cfg, parse_list(args.scenarios), parse_list(args.controllers),
@@ -220,6 +235,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", help="TOML file merged over the defaults")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
     p.set_defaults(func=cmd_experiment)
+
+    p = sub.add_parser("scenario", help="a scenario's layout as JSON, and its picture")
+    p.add_argument("--plot", metavar="FILE.png", help="write the top-down picture")
+    add_config_args(p)
+    p.set_defaults(func=cmd_scenario)
 
     p = sub.add_parser("router", help="a standalone Zenoh router (default tcp/0.0.0.0:7447)")
     add_config_args(p)

@@ -11,6 +11,7 @@ Output directory:
                  where it stopped (a torn last line is ignored)
   summary.json   per scenario/controller/samples: counts of each outcome and the
                  time to goal over successful runs
+  summary.md     the same as a markdown table, the paper's figures beside ours
   *.png          the plots of `deploy.plots`
 """
 
@@ -100,6 +101,48 @@ def summarize(runs: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
+# The paper's reported figures (Section "Results and Discussion"): failure percentage
+# of 100 runs and how many of those failures were collisions; time to goal mean
+# and std over successful runs, s. None where the paper gives no number.
+PAPER: dict[tuple[str, str, int], dict[str, Any]] = {
+    ("offroad", "deterministic", 400): {"failure_pct": 92, "collision_pct": 92},
+    ("offroad", "prescient", 400): {"failure_pct": 6, "collision_pct": 0,
+                                    "time_to_goal": (12.2, 0.5)},
+    ("offroad", "va", 400): {"failure_pct": 16, "collision_pct": 0, "time_to_goal": (13.3, 0.4)},
+    ("alleyway", "deterministic", 400): {"failure_pct": 95, "collision_pct": 95},
+    ("alleyway", "prescient", 400): {"failure_pct": 3, "time_to_goal": (12.5, 0.5)},
+    ("alleyway", "va", 400): {"failure_pct": 9, "collision_pct": 4, "time_to_goal": (12.8, 0.4)},
+    ("alleyway", "va", 1000): {"failure_pct": 8, "collision_pct": 2},
+    ("alleyway", "va", 4000): {"failure_pct": 7, "collision_pct": 0},
+    ("alleyway", "deterministic", 4000): {"failure_pct": 100, "collision_pct": 100},
+    ("offroad", "deterministic", 4000): {"failure_pct": 100, "collision_pct": 100},
+}
+
+
+def markdown_table(summary: list[dict[str, Any]]) -> str:
+    """The summary as a markdown table, the paper's figures beside ours."""
+    def pct(n: int, runs: int) -> str:
+        return f"{100.0 * n / runs:.0f} %"
+
+    lines = ["| scenario | controller | K | runs | failures | collision | stopping | timeout "
+             "| time to goal, s | paper: failures (collisions) | paper: time to goal, s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in summary:
+        n = r["runs"]
+        fails = r["collision"] + r["stopping"] + r["timeout"]
+        ttg = (f"{r['time_to_goal_mean_s']:.2f} ± {r['time_to_goal_std_s']:.2f}"
+               if r["time_to_goal_mean_s"] is not None else "—")
+        paper = PAPER.get((r["scenario"], r["controller"], r["samples"]), {})
+        p_fail = (f"{paper['failure_pct']} %" + (f" ({paper['collision_pct']} %)"
+                                                 if "collision_pct" in paper else "")
+                  if "failure_pct" in paper else "—")
+        p_ttg = "{} ± {}".format(*paper["time_to_goal"]) if "time_to_goal" in paper else "—"
+        lines.append(f"| {r['scenario']} | {r['controller']} | {r['samples']} | {n} "
+                     f"| {pct(fails, n)} | {pct(r['collision'], n)} | {pct(r['stopping'], n)} "
+                     f"| {pct(r['timeout'], n)} | {ttg} | {p_fail} | {p_ttg} |")
+    return "\n".join(lines) + "\n"
+
+
 def experiment(cfg: Config, scenarios: list[str], controllers: list[str], samples: list[int],
                runs: int, seed: int, out: Path, plots: bool = True,
                progress: bool = True) -> list[dict[str, Any]]:
@@ -128,6 +171,7 @@ def experiment(cfg: Config, scenarios: list[str], controllers: list[str], sample
     all_runs = read_runs(runs_path)
     summary = summarize(all_runs)
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    (out / "summary.md").write_text(markdown_table(summary))
     if plots:
         from deploy import plots as plotting
         plotting.plot_all(cfg, all_runs, summary, out)

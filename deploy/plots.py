@@ -5,6 +5,8 @@ time_to_goal.png      time-to-goal box plots over successful runs
 trajectories_<s>.png  every run's path over the scenario, coloured by speed
 solve_time.png        histogram of planner solve times
 visibility_<s>.png    one VA-MPPI run: the map variance, the vehicle and its plan over time
+
+and `plot_scenario`, a scenario's top-down picture (`vamppi scenario --plot`).
 """
 
 from __future__ import annotations
@@ -85,6 +87,33 @@ def _scenario_background(ax, cfg: Config, scenario: str) -> None:
     ax.plot(scn.start.x, scn.start.y, "k^", ms=7)
     ax.add_patch(plt.Circle((scn.goal.x, scn.goal.y), cfg.episode.goal_radius_m, fill=False,
                             color="k", lw=1.2))
+
+
+def plot_scenario(cfg: Config, scenario: str, path: Path) -> Path:
+    """Top-down picture: terrain and obstacles (height above the bare ground), the
+    start (triangle, heading) and the goal region, each obstacle numbered as listed
+    by `vamppi scenario`."""
+    scn = scenario_of(cfg.replace(**{"episode.scenario": scenario}))
+    h, w = scn.heightmap.shape
+    extent = (0, w * scn.resolution, 0, h * scn.resolution)
+    fig, ax = plt.subplots(figsize=(7, 6.2))
+    im = ax.imshow(scn.heightmap, origin="lower", extent=extent, cmap="terrain", vmin=-1.0,
+                   vmax=5.0)
+    fig.colorbar(im, ax=ax, label="elevation, m", shrink=0.8)
+    for i, ob in enumerate(scn.obstacles):
+        if ob.height < 4.0:          # the tree trunks are too many to number
+            ax.annotate(str(i), (ob.x, ob.y), color="k", fontsize=7, ha="center", va="center")
+    ax.annotate("", (scn.start.x + 4 * np.cos(scn.start.yaw), scn.start.y
+                     + 4 * np.sin(scn.start.yaw)), (scn.start.x, scn.start.y),
+                arrowprops={"arrowstyle": "->", "color": "k", "lw": 2})
+    ax.plot(scn.start.x, scn.start.y, "k^", ms=8, label="start")
+    ax.add_patch(plt.Circle((scn.goal.x, scn.goal.y), cfg.episode.goal_radius_m, fill=False,
+                            color="r", lw=1.5, label="goal region"))
+    ax.set_title(f"{scenario}: {scn.description}", fontsize=8, wrap=True)
+    ax.set_xlabel("x, m")
+    ax.set_ylabel("y, m")
+    ax.legend(fontsize=8, loc="lower right")
+    return _save(fig, path)
 
 
 def plot_trajectories(cfg: Config, runs: list[dict[str, Any]], scenario: str, out: Path

@@ -44,6 +44,9 @@ def test_small_experiment_records_are_complete_and_resumable(tmp_path):
     assert {s["controller"] for s in summary} == {"va", "deterministic", "prescient"}
     for s in summary:
         assert s["runs"] == 2 and sum(s[o] for o in OUTCOMES) == 2
+    table = (out / "summary.md").read_text().splitlines()
+    assert len(table) == 2 + len(summary)
+    assert all(row.startswith("| alleyway | ") and row.count("|") == 12 for row in table[2:])
     for name in ("failures.png", "time_to_goal.png", "solve_time.png",
                  "trajectories_alleyway.png", "visibility_alleyway.png"):
         assert (out / name).stat().st_size > 10_000, name

@@ -1,0 +1,86 @@
+"""The scenarios do what their rationale says: the hidden obstacles are hidden.
+
+The ground-truth depth camera is driven along the approach each scenario is
+built around (the road for offroad, the alley's centre line for alleyway);
+every return is projected back onto the map. The obstacles meant to be hidden
+must never be hit from there; the occluders and visible obstacles must be.
+"""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+
+from common.config import load_config
+from common.scenarios import build_scenario
+from services.sensor import core as sensor
+
+CFG = load_config()
+CAM = sensor.CameraParams.from_config(CFG.sensor)
+
+
+def seen_points(scn, poses):
+    """World x, y of every depth return from the vehicle poses (x, y, yaw)."""
+    dirs = sensor.ray_directions(CAM).reshape(-1, 3)
+    out = []
+    for x, y, yaw in poses:
+        col, row = int(x / scn.resolution), int(y / scn.resolution)
+        z = float(scn.heightmap[row, col])
+        depth, pos, rot = sensor.render(CAM, scn.heightmap, scn.origin, scn.resolution,
+                                        x, y, z, yaw)
+        d = depth.reshape(-1)
+        hit = d > 0
+        t = d[hit] / dirs[hit, 2]                       # z-depth -> distance along the ray
+        pts = pos + (dirs[hit] @ rot.T) * t[:, None]
+        out.append(pts[:, :2])
+    return np.concatenate(out)
+
+
+def hits_on(points, ob, margin=0.15):
+    return int((np.hypot(points[:, 0] - ob.x, points[:, 1] - ob.y) <= ob.radius + margin).sum())
+
+
+def test_offroad_hides_the_obstacles_that_close_the_gap_until_the_vehicle_faces_it():
+    scn = build_scenario("offroad")
+    road = [(x, 20.0, 0.0) for x in np.arange(8.0, 55.0, 2.0)]
+    turn = [(55.0, 20.3, 0.3), (56.5, 21.2, 0.6), (57.5, 22.5, 0.9), (58.0, 23.5, 1.1)]
+    cyl = [o for o in scn.obstacles if o.kind == "cylinder"]
+    trees = [o for o in cyl if o.height >= 4.0]
+    rocks = [o for o in cyl if o.height < 4.0 and abs(o.y - 33.0) < 1e-9]
+    hidden = [o for o in cyl if o.height < 4.0 and o not in rocks]
+    assert len(rocks) == 3 and len(hidden) == 2
+    pts = seen_points(scn, road)
+    assert sum(hits_on(pts, t) for t in trees) > 1000            # the tree line occludes
+    assert all(hits_on(pts, o) == 0 for o in rocks + hidden)     # the field is unseen
+    pts = seen_points(scn, turn)                                 # turning at the row's end
+    assert all(hits_on(pts, r) > 100 for r in rocks)             # the rocks are seen ...
+    assert all(hits_on(pts, h) == 0 for h in hidden)             # ... the gap looks open
+    pts = seen_points(scn, [(58.3, 24.5, 1.3)])                  # facing the gap, ~8 m off
+    assert hits_on(pts, hidden[0]) > 100
+
+
+def test_alleyway_hides_the_obstacles_behind_the_block_until_it_is_passed():
+    scn = build_scenario("alleyway")
+    pts = seen_points(scn, [(x, 40.0, 0.0) for x in np.arange(12.0, 31.0, 2.0)])
+    hidden = [o for o in scn.obstacles if o.kind == "cylinder"]
+    block = [o for o in scn.obstacles if o.kind == "box" and o.half_y < 5.0][0]
+    assert len(hidden) == 2
+    on_block = (np.abs(pts[:, 0] - block.x) <= block.half_x + 0.15) & (
+        np.abs(pts[:, 1] - block.y) <= block.half_y + 0.15)
+    assert on_block.sum() > 1000
+    assert all(hits_on(pts, h) == 0 for h in hidden)
+
+
+def test_scenarios_are_deterministic_and_the_cli_describes_and_draws_them(tmp_path):
+    a, b = build_scenario("offroad", 3), build_scenario("offroad", 3)
+    assert a.heightmap.tobytes() == b.heightmap.tobytes()
+    assert build_scenario("offroad", 4).heightmap.tobytes() != a.heightmap.tobytes()
+    png = tmp_path / "offroad.png"
+    r = subprocess.run([sys.executable, "-m", "deploy.cli", "scenario", "--scenario", "offroad",
+                        "--plot", str(png)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    layout = json.loads(r.stdout)
+    assert layout["name"] == "offroad" and len(layout["obstacles"]) == len(a.obstacles)
+    assert layout["goal"] == {"x": 45.0, "y": 46.0, "yaw": a.goal.yaw}
+    assert png.stat().st_size > 10_000
