@@ -129,6 +129,13 @@ def cmd_scenario(args: argparse.Namespace, cfg: Config) -> int:
     return 0
 
 
+def cmd_bench(args: argparse.Namespace, cfg: Config) -> int:
+    from deploy import bench
+    from deploy.experiment import parse_list
+    return bench.main(cfg, args.what, parse_list(args.samples_list, int),
+                      parse_list(args.controllers), args.reps, args.json)
+
+
 def cmd_router(args: argparse.Namespace, cfg: Config) -> int:
     """A standalone router until Ctrl-C (services on several machines connect to it)."""
     from common.bus import open_session
@@ -240,6 +247,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plot", metavar="FILE.png", help="write the top-down picture")
     add_config_args(p)
     p.set_defaults(func=cmd_scenario)
+
+    p = sub.add_parser("bench", help="speed benchmarks (a table, or JSON with --json)")
+    p.add_argument("what", choices=("planner",))
+    p.add_argument("--samples", dest="samples_list", default="400,800,1000,4000",
+                   help="sample counts K")
+    p.add_argument("--controllers", default="va,deterministic")
+    p.add_argument("--reps", type=int, default=20, help="timed repetitions per case")
+    p.add_argument("--json", action="store_true", help="one JSON document instead of a table")
+    p.add_argument("--config", help="TOML file merged over the defaults")
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
+    p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("router", help="a standalone Zenoh router (default tcp/0.0.0.0:7447)")
     add_config_args(p)

@@ -1,0 +1,22 @@
+"""`vamppi bench planner --json`: a complete, well-formed document (no timing asserted)."""
+
+import json
+import subprocess
+import sys
+
+
+def test_planner_bench_json_names_the_device_and_every_case():
+    r = subprocess.run([sys.executable, "-m", "deploy.cli", "bench", "planner", "--samples",
+                        "16", "--reps", "3", "--json"], capture_output=True, text=True,
+                       timeout=900)
+    assert r.returncode == 0, r.stderr[-2000:]
+    doc = json.loads(r.stdout)
+    assert doc["benchmark"] == "planner" and doc["backend"] == "cpu" and doc["device"]
+    assert doc["settings"]["horizon"] == 40 and doc["settings"]["map_cells"] == [400, 400]
+    cases = {(c["controller"], c["samples"]): c for c in doc["cases"]}
+    assert set(cases) == {("va", 16), ("deterministic", 16)}
+    for c in cases.values():
+        assert c["reps"] == 3 and 0 < c["min_ms"] <= c["median_ms"] <= c["p95_ms"]
+        assert c["compile_s"] > 0 and c["peak_mem_mb"] > 0
+    # the visibility update's count map (8 x 410 x 410 float32) is in the VA program only
+    assert cases[("va", 16)]["peak_mem_mb"] > cases[("deterministic", 16)]["peak_mem_mb"] + 4
