@@ -4,6 +4,12 @@ planner   one full MPPI iteration (sampling, rollouts, the visibility-aware
           variance update for `va`, costs, weights, update) per controller and
           sample count, all cases in one process and interleaved repetition by
           repetition, so their ratios hold even when the machine is busy.
+mapper    one depth frame fused, the occluded field of view inpainted, the map
+          message encoded; at the default camera resolution and at 320 x 240.
+bus       a map-sized message (two 400 x 400 float32 layers) from one client
+          session to another through a real Zenoh router on loopback: one-way
+          latency (one message in flight) and throughput (back to back), with
+          our codec (encode + put ... decode) and a raw put of the same bytes.
 
 Timing: compilation is timed apart (lower + compile) and excluded; every
 repetition is blocked on (`jax.block_until_ready`); medians and p95 over many
@@ -133,10 +139,166 @@ def planner_table(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _stats_ms(times: list[float]) -> dict[str, float]:
+    t = np.asarray(times) * 1e3
+    return {"median_ms": round(float(np.median(t)), 3),
+            "p95_ms": round(float(np.percentile(t, 95)), 3),
+            "p99_ms": round(float(np.percentile(t, 99)), 3), "reps": len(t)}
+
+
+def bench_mapper(cfg: Config, reps: int, sizes: tuple[tuple[int, int], ...] = ((0, 0), (320, 240))
+                 ) -> dict[str, Any]:
+    """Per camera size: fuse, inpaint, encode, and the whole, medians over `reps` frames
+    (the same frame each time, from the offroad start, fused into a fresh map)."""
+    from common.messages import Header, Map, encode
+    from services.mapper import core as mapper
+    from services.sensor import core as sensor
+    scn = scenario_of(cfg.replace(**{"episode.scenario": "offroad"}))
+    params = mapper.MapperParams.from_config(cfg, scn.origin)
+    x, y, yaw = scn.start.x, scn.start.y, scn.start.yaw
+    z = float(scn.heightmap[int(y / scn.resolution), int(x / scn.resolution)])
+    cases = []
+    for w, h in sizes:
+        scfg = cfg.sensor if not w else cfg.replace(**{"sensor.width_px": w,
+                                                       "sensor.height_px": h}).sensor
+        cam = sensor.CameraParams.from_config(scfg)
+        depth, pos, rot = sensor.render(cam, scn.heightmap, scn.origin, scn.resolution, x, y, z,
+                                        yaw)
+        pose = np.array([x, y, z, yaw])
+        fresh = mapper.initial_map(params, x, y, z)
+        t0 = time.perf_counter()
+        mapper.update(params, fresh, depth, cam.intrinsics, pos, rot, pose)   # compile
+        compile_s = time.perf_counter() - t0
+        stages: dict[str, list[float]] = {"fuse": [], "inpaint": [], "encode": [], "total": []}
+        for i in range(reps):
+            t0 = time.perf_counter()
+            fused = mapper.fuse_depth(params, fresh, depth, cam.intrinsics, pos, rot)
+            jax.block_until_ready((fused.mean, fused.variance))
+            t1 = time.perf_counter()
+            done = mapper.inpaint_occluded(params, fused, x, y, z, yaw)
+            t2 = time.perf_counter()
+            payload = encode(Map(Header(i, 0.0, time.time(), "bench/0"), np.asarray(done.mean),
+                                 np.asarray(done.variance), np.asarray(params.origin, float),
+                                 params.resolution))
+            t3 = time.perf_counter()
+            for k, dt in (("fuse", t1 - t0), ("inpaint", t2 - t1), ("encode", t3 - t2),
+                          ("total", t3 - t0)):
+                stages[k].append(dt)
+        cases.append({"width": cam.width, "height": cam.height, "compile_s": round(compile_s, 2),
+                      "map_bytes": len(payload),
+                      **{k: _stats_ms(v) for k, v in stages.items()}})
+    return {"benchmark": "mapper", **device_info(),
+            "settings": {"map_cells": [params.size, params.size], "reps": reps}, "cases": cases}
+
+
+def bench_bus(cfg: Config, reps: int, burst: int = 200) -> dict[str, Any]:
+    """Map-sized messages through a router on a free loopback port (client sessions)."""
+    import threading
+
+    import zenoh
+
+    from common.bus import open_session
+    from common.config import BusConfig
+    from common.messages import Header, Map, decode, encode
+    from deploy.launch import free_port
+    n = cfg.mapper.size_cells
+    rng = np.random.default_rng(0)
+    mean = rng.normal(size=(n, n)).astype(np.float32)
+    var = rng.uniform(0, 3, (n, n)).astype(np.float32)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+
+    def make(i: int) -> Map:
+        return Map(Header(i, 0.0, time.time(), "bench/0"), mean, var, np.zeros(2), 0.2)
+
+    size = len(encode(make(0)))
+    router = open_session(BusConfig("router", (), (endpoint,), False))
+    pub_s = open_session(BusConfig("client", (endpoint,), (), False))
+    sub_s = open_session(BusConfig("client", (endpoint,), (), False))
+    got: list[float] = []
+    arrived = threading.Condition()
+
+    def on_sample(sample, codec: bool) -> None:
+        if codec:
+            decode(sample.payload.to_bytes(), Map)
+        else:
+            sample.payload.to_bytes()
+        with arrived:
+            got.append(time.perf_counter())
+            arrived.notify_all()
+
+    results = []
+    try:
+        for codec in (True, False):
+            key = f"bench/bus/{'codec' if codec else 'raw'}"
+            sub = sub_s.declare_subscriber(key, lambda s, c=codec: on_sample(s, c))
+            pub = pub_s.declare_publisher(key, reliability=zenoh.Reliability.RELIABLE,
+                                          congestion_control=zenoh.CongestionControl.BLOCK)
+            time.sleep(0.5)                          # routes established
+            raw = encode(make(0))
+            lat = []
+            for i in range(reps + 5):
+                got.clear()
+                t0 = time.perf_counter()
+                pub.put(encode(make(i)) if codec else raw)
+                with arrived:
+                    if not arrived.wait_for(lambda: got, timeout=5.0):
+                        raise RuntimeError(f"bus bench: message {i} not delivered in 5 s")
+                if i >= 5:                           # warm-up excluded
+                    lat.append(got[0] - t0)
+            got.clear()
+            t0 = time.perf_counter()
+            for i in range(burst):
+                pub.put(encode(make(i)) if codec else raw)
+            with arrived:
+                if not arrived.wait_for(lambda: len(got) >= burst, timeout=60.0):
+                    raise RuntimeError(f"bus bench: {len(got)} of {burst} delivered")
+            rate = burst / (got[-1] - t0)
+            results.append({"payload": "codec" if codec else "raw", "bytes": size,
+                            **_stats_ms(lat), "msgs_per_s": round(rate, 1),
+                            "mb_per_s": round(rate * size / 1e6, 1)})
+            sub.undeclare()
+            pub.undeclare()
+    finally:
+        for s in (pub_s, sub_s, router):
+            s.close()
+    return {"benchmark": "bus", **device_info(), "zenoh": zenoh.__version__ if hasattr(
+        zenoh, "__version__") else "", "settings": {"endpoint": "tcp loopback, via a router",
+                                                    "reps": reps, "burst": burst},
+            "cases": results}
+
+
+def table(result: dict[str, Any]) -> str:
+    """A markdown table of any benchmark's result."""
+    kind = result["benchmark"]
+    if kind == "planner":
+        return planner_table(result)
+    head = f"{kind}: {result['device']} ({result['backend']}, jax {result['jax']})"
+    if kind == "mapper":
+        lines = [head, "| camera | fuse ms | inpaint ms | encode ms | total median ms "
+                 "| total p95 ms | compile s |", "|---|---|---|---|---|---|---|"]
+        for c in result["cases"]:
+            lines.append(f"| {c['width']} x {c['height']} | {c['fuse']['median_ms']:.1f} "
+                         f"| {c['inpaint']['median_ms']:.1f} | {c['encode']['median_ms']:.1f} "
+                         f"| {c['total']['median_ms']:.1f} | {c['total']['p95_ms']:.1f} "
+                         f"| {c['compile_s']:.1f} |")
+        return "\n".join(lines)
+    lines = [head, "| payload | bytes | latency p50 ms | p99 ms | msgs/s | MB/s |",
+             "|---|---|---|---|---|---|"]
+    for c in result["cases"]:
+        lines.append(f"| {c['payload']} | {c['bytes']} | {c['median_ms']:.2f} | {c['p99_ms']:.2f} "
+                     f"| {c['msgs_per_s']:.0f} | {c['mb_per_s']:.0f} |")
+    return "\n".join(lines)
+
+
 def main(cfg: Config, what: str, samples: list[int], controllers: list[str], reps: int,
          as_json: bool) -> int:
-    if what != "planner":
+    if what == "planner":
+        result = bench_planner(cfg, samples, controllers, reps)
+    elif what == "mapper":
+        result = bench_mapper(cfg, reps)
+    elif what == "bus":
+        result = bench_bus(cfg, reps)
+    else:
         raise ValueError(f"unknown benchmark {what!r}")
-    result = bench_planner(cfg, samples, controllers, reps)
-    print(json.dumps(result) if as_json else planner_table(result), flush=True)
+    print(json.dumps(result) if as_json else table(result), flush=True)
     return 0

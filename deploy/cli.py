@@ -249,7 +249,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_scenario)
 
     p = sub.add_parser("bench", help="speed benchmarks (a table, or JSON with --json)")
-    p.add_argument("what", choices=("planner",))
+    p.add_argument("what", choices=("planner", "mapper", "bus"))
     p.add_argument("--samples", dest="samples_list", default="400,800,1000,4000",
                    help="sample counts K")
     p.add_argument("--controllers", default="va,deterministic")

@@ -20,3 +20,28 @@ def test_planner_bench_json_names_the_device_and_every_case():
         assert c["compile_s"] > 0 and c["peak_mem_mb"] > 0
     # the visibility update's count map (8 x 410 x 410 float32) is in the VA program only
     assert cases[("va", 16)]["peak_mem_mb"] > cases[("deterministic", 16)]["peak_mem_mb"] + 4
+
+
+def bench_json(*args):
+    r = subprocess.run([sys.executable, "-m", "deploy.cli", "bench", *args, "--json"],
+                       capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stderr[-2000:]
+    return json.loads(r.stdout)
+
+
+def test_mapper_bench_times_every_stage_at_both_camera_sizes():
+    doc = bench_json("mapper", "--reps", "3")
+    assert [(c["width"], c["height"]) for c in doc["cases"]] == [(128, 72), (320, 240)]
+    for c in doc["cases"]:
+        assert c["map_bytes"] > 2 * 400 * 400 * 4
+        for stage in ("fuse", "inpaint", "encode", "total"):
+            assert c[stage]["reps"] == 3 and c[stage]["median_ms"] > 0
+        assert c["total"]["median_ms"] >= c["fuse"]["median_ms"]
+
+
+def test_bus_bench_delivers_map_sized_messages_through_a_loopback_router():
+    doc = bench_json("bus", "--reps", "10")
+    assert [c["payload"] for c in doc["cases"]] == ["codec", "raw"]
+    for c in doc["cases"]:
+        assert c["bytes"] > 2 * 400 * 400 * 4 and c["reps"] == 10
+        assert 0 < c["median_ms"] <= c["p99_ms"] and c["msgs_per_s"] > 0

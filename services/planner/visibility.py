@@ -13,11 +13,13 @@ Sigma * exp(-gamma * C) (Eq. uncertainty_update_equation, with the sign that
 makes uncertainty shrink).
 
 Causality: the variance the trajectory meets at step i uses only the points
-seen from poses 0 .. i-1. A scan over the horizon carries the trajectory's raw
-(unsplatted) count map: step i adds pose i-1's visible points, then reads the
-splatted count at step i's query cells (a 9 x 9 window per cell). Memory: one
-padded map per trajectory of a chunk (`va_chunk`), never K full maps at once,
-plus the visible points of every pose (K x (N+1) x 600 indices).
+seen from poses 0 .. i-1. A scan over the horizon carries a raw (unsplatted)
+count map: step i adds pose i-1's visible points, then reads the splatted
+count at step i's footprint cells (an 11 x 11 patch per footprint point, one
+small matmul for its five cells). Memory: one padded map per trajectory
+processed side by side (`va_chunk`), shared by the trajectories in turn and
+cleaned after each, never K full maps; plus the visible points of every pose
+(K x N x 600 indices: 77 MB at K = 800).
 """
 
 from __future__ import annotations
