@@ -46,13 +46,15 @@ def bilinear(grid: Any, x: Any, y: Any, origin: Any, resolution: float, xp: Any 
     return (v00 * (1 - fc) + v01 * fc) * (1 - fr) + (v10 * (1 - fc) + v11 * fc) * fr
 
 
-def footprint_points(length: float, width: float, n_across: int) -> np.ndarray:
-    """Two arrays of `n_across` points (front edge, then rear edge) in the body frame,
-    spanning the width: shape (2 * n_across, 2) of (forward, left) offsets."""
+def footprint_points(length: float, width: float, n_across: int, n_arrays: int = 2
+                     ) -> np.ndarray:
+    """`n_arrays` arrays of `n_across` points spanning the width, evenly spaced from the
+    front edge to the rear edge (2: the paper's front and rear arrays), in the body
+    frame: shape (n_arrays * n_across, 2) of (forward, left) offsets, array-major."""
     ys = np.linspace(-width / 2.0, width / 2.0, n_across)
-    front = np.stack([np.full(n_across, length / 2.0), ys], axis=-1)
-    rear = np.stack([np.full(n_across, -length / 2.0), ys], axis=-1)
-    return np.concatenate([front, rear]).astype(np.float64)
+    xs = np.linspace(length / 2.0, -length / 2.0, n_arrays)
+    return np.concatenate([np.stack([np.full(n_across, x), ys], axis=-1) for x in xs]
+                          ).astype(np.float64)
 
 
 def footprint_grid(length: float, width: float, spacing: float) -> np.ndarray:

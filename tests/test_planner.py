@@ -50,7 +50,8 @@ def flat_map(n=400):
                    jnp.zeros(2), 0.2)
 
 
-ZERO_VAR = jnp.zeros((PP.horizon + 1, 5 * 2 * CFG.planner.footprint_points), jnp.float32)
+P_POINTS = CFG.planner.footprint_arrays * CFG.planner.footprint_points
+ZERO_VAR = jnp.zeros((PP.horizon + 1, 5 * P_POINTS), jnp.float32)
 
 
 def test_surface_cost_sees_a_wall_and_nothing_on_flat_ground():
@@ -64,6 +65,35 @@ def test_surface_cost_sees_a_wall_and_nothing_on_flat_ground():
     wall = MapView(m.mean.at[150:250, 200:205].set(2.0), m.variance, m.origin, m.resolution)
     hit = rollout_cost(PP.cost, states, xd, goal, wall, ZERO_VAR)
     assert float(hit[2]) > 10 * PP.cost.w_surface
+
+
+def test_a_middle_array_and_a_margin_see_a_corner_at_the_vehicles_side():
+    """The paper's two arrays (front and rear edge) leave the sides unpriced: a post
+    beside the vehicle's middle costs nothing. A middle array sees a post reaching the
+    side; a margin sees one just clear of it."""
+    from common.geometry import footprint_points
+    fp = footprint_points(4.0, 2.0, 5, 3)
+    assert fp.shape == (15, 2) and sorted(set(fp[:, 0])) == [-2.0, 0.0, 2.0]
+    np.testing.assert_array_equal(footprint_points(4.0, 2.0, 5), fp[[*range(5), *range(10, 15)]])
+    x0 = jnp.asarray([0.0, 0, 0, 40.1, 40.1, 0.0], jnp.float32)        # standing still
+    states, _, xd = mppi.rollout(PP, x0, jnp.zeros(2), jnp.zeros((PP.horizon, 2)))
+    goal = jnp.asarray([60.0, 40.0, 0.0])
+    m = flat_map()
+
+    def surface(post_rows, arrays, margin):
+        cfg = CFG.replace(**{"planner.footprint_arrays": arrays,
+                             "planner.footprint_margin_m": margin})
+        cp = mppi.PlannerParams.from_config(cfg).cost
+        post = MapView(m.mean.at[post_rows, 199:202].set(2.0), m.variance, m.origin, 0.2)
+        zero = jnp.zeros((PP.horizon + 1, 5 * arrays * 5), jnp.float32)
+        return float(rollout_cost(cp, states, xd, goal, post, zero)[2])
+
+    touching = slice(204, 207)           # y 40.8-41.4: into the left side (y <= 41.1)
+    clear = slice(207, 209)              # y 41.4-41.8: beyond the side's cells and their
+    #                                      neighbours (read by the gradient indicators)
+    assert surface(touching, 2, 0.0) == 0.0
+    assert surface(touching, 3, 0.0) > 0.0
+    assert surface(clear, 3, 0.0) == 0.0 and surface(clear, 3, 0.2) > 0.0
 
 
 def test_mppi_is_reproducible_and_moves_toward_the_goal():
@@ -111,7 +141,7 @@ def test_monte_carlo_surface_cost_agrees_with_the_closed_form(rng):
     c_cf = CostParams.from_config(CFG)
     c_mc = CostParams.from_config(CFG.replace(**{"planner.surface_estimator": "monte_carlo",
                                                  "planner.surface_samples": 4000}))
-    n, steps, p = 60, PP.horizon + 1, 2 * CFG.planner.footprint_points
+    n, steps, p = 60, PP.horizon + 1, P_POINTS
     mean = jnp.asarray(rng.normal(size=(n, n)) * 0.4, jnp.float32)
     m = MapView(mean, jnp.zeros((n, n)), jnp.zeros(2), 0.2)
     rows = jnp.asarray(rng.integers(1, n - 1, (steps, 5 * p)), jnp.int32)

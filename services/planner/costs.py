@@ -59,7 +59,9 @@ class CostParams:
     @classmethod
     def from_config(cls, cfg: Config) -> CostParams:
         p, v = cfg.planner, cfg.vehicle
-        fp = footprint_points(v.footprint_length_m, v.footprint_width_m, p.footprint_points)
+        margin = 2.0 * p.footprint_margin_m
+        fp = footprint_points(v.footprint_length_m + margin, v.footprint_width_m + margin,
+                              p.footprint_points, p.footprint_arrays)
         return cls(p.dt_s, p.horizon, p.w_time, p.w_dynamic, p.w_surface, p.w_dist, p.w_acc,
                    p.w_orientation, p.activation_distance_m, p.time_speed_floor_mps,
                    p.acc_distance_floor_m, float(np.sqrt(p.grad_sq_threshold)),
