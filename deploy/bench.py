@@ -127,7 +127,7 @@ def planner_table(result: dict[str, Any]) -> str:
     rows = result["cases"]
     det = {r["samples"]: r["median_ms"] for r in rows if r["controller"] == "deterministic"}
     lines = [f"planner, one iteration: {result['device']} ({result['backend']}, "
-             f"jax {result['jax']})",
+             f"jax {result['jax']})", "",
              "| controller | K | median ms | p95 ms | min ms | va / det | compile s | memory MB |",
              "|---|---|---|---|---|---|---|---|"]
     for r in rows:
@@ -274,7 +274,7 @@ def table(result: dict[str, Any]) -> str:
         return planner_table(result)
     head = f"{kind}: {result['device']} ({result['backend']}, jax {result['jax']})"
     if kind == "mapper":
-        lines = [head, "| camera | fuse ms | inpaint ms | encode ms | total median ms "
+        lines = [head, "", "| camera | fuse ms | inpaint ms | encode ms | total median ms "
                  "| total p95 ms | compile s |", "|---|---|---|---|---|---|---|"]
         for c in result["cases"]:
             lines.append(f"| {c['width']} x {c['height']} | {c['fuse']['median_ms']:.1f} "
@@ -282,7 +282,7 @@ def table(result: dict[str, Any]) -> str:
                          f"| {c['total']['median_ms']:.1f} | {c['total']['p95_ms']:.1f} "
                          f"| {c['compile_s']:.1f} |")
         return "\n".join(lines)
-    lines = [head, "| payload | bytes | latency p50 ms | p99 ms | msgs/s | MB/s |",
+    lines = [head, "", "| payload | bytes | latency p50 ms | p99 ms | msgs/s | MB/s |",
              "|---|---|---|---|---|---|"]
     for c in result["cases"]:
         lines.append(f"| {c['payload']} | {c['bytes']} | {c['median_ms']:.2f} | {c['p99_ms']:.2f} "

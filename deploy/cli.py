@@ -168,11 +168,14 @@ def cmd_health(args: argparse.Namespace, cfg: Config) -> int:
 
 
 def cmd_experiment(args: argparse.Namespace, cfg: Config) -> int:
-
-    from deploy.experiment import experiment, parse_list
-    summary = experiment(cfg, parse_list(args.scenarios), parse_list(args.controllers),
-                         parse_list(args.samples_list, int), args.runs, args.seed_base,
-                         Path(args.out), plots=not args.no_plots, progress=not args.quiet)
+    from deploy.experiment import ExperimentError, experiment, parse_list
+    try:
+        summary = experiment(cfg, parse_list(args.scenarios), parse_list(args.controllers),
+                             parse_list(args.samples_list, int), args.runs, args.seed_base,
+                             Path(args.out), plots=not args.no_plots, progress=not args.quiet)
+    except ExperimentError as exc:
+        print(f"vamppi experiment: {exc}", file=sys.stderr)
+        return 2
     for row in summary:
         print(json.dumps(row), flush=True)
     return 0

@@ -8,7 +8,9 @@ seeds `seed, seed + 1, ...` on the same scenario (its terrain fixed by
 Output directory:
   runs.jsonl     one record per finished run, appended and fsynced as each ends:
                  an interrupted experiment keeps its finished runs and resumes
-                 where it stopped (a torn last line is ignored)
+                 where it stopped (a torn last line is ignored); each record
+                 carries the configuration's digest, and resuming with another
+                 configuration is refused
   summary.json   per scenario/controller/samples: counts of each outcome and the
                  time to goal over successful runs
   summary.md     the same as a markdown table, the paper's figures beside ours
@@ -17,6 +19,7 @@ Output directory:
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
@@ -36,6 +39,23 @@ log = logging.getLogger(__name__)
 KEY_FIELDS = ("scenario", "controller", "samples", "seed")
 
 
+class ExperimentError(ValueError):
+    """An output directory that cannot be resumed with this configuration."""
+
+
+def config_digest(cfg: Config) -> str:
+    """Digest of every parameter that shapes a run except the per-run keys (scenario,
+    controller, samples, seed); the bus and the clock do not matter in-process. The
+    runs of one output directory must share it."""
+    d = cfg.to_dict()
+    d.pop("bus", None)
+    for section, key in (("episode", "scenario"), ("episode", "seed"), ("episode", "clock"),
+                         ("episode", "vehicle"), ("planner", "controller"),
+                         ("planner", "samples")):
+        d[section].pop(key, None)
+    return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
+
+
 def run_record(cfg: Config, result) -> dict[str, Any]:
     """One run's record: the summary, its 10 Hz path (t, X, Y, V) and solve times."""
     traj = result.trajectory
@@ -45,7 +65,7 @@ def run_record(cfg: Config, result) -> dict[str, Any]:
     rec = result.summary(cfg)
     rec.update(path=np.round(path, 3).tolist(), max_speed_mps=round(float(speed.max()), 3),
                solve_ms=[round(x, 2) for x in result.solve_ms],
-               scenario_seed=cfg.episode.scenario_seed)
+               scenario_seed=cfg.episode.scenario_seed, config_digest=config_digest(cfg))
     return rec
 
 
@@ -103,7 +123,7 @@ def summarize(runs: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
 
 # The paper's reported figures (Section "Results and Discussion"): failure percentage
 # of 100 runs and how many of those failures were collisions; time to goal mean
-# and std over successful runs, s. None where the paper gives no number.
+# and std over successful runs, s. A key is absent where the paper gives no number.
 PAPER: dict[tuple[str, str, int], dict[str, Any]] = {
     ("offroad", "deterministic", 400): {"failure_pct": 92, "collision_pct": 92},
     ("offroad", "prescient", 400): {"failure_pct": 6, "collision_pct": 0,
@@ -149,7 +169,17 @@ def experiment(cfg: Config, scenarios: list[str], controllers: list[str], sample
     """Run what is missing from `out/runs.jsonl`, then write the summary and plots."""
     out.mkdir(parents=True, exist_ok=True)
     runs_path = out / "runs.jsonl"
-    done = {tuple(r[k] for k in KEY_FIELDS) for r in read_runs(runs_path)}
+    existing = read_runs(runs_path)
+    digest = config_digest(cfg)
+    other = {r["config_digest"] for r in existing if r.get("config_digest", digest) != digest}
+    if other:
+        raise ExperimentError(f"{runs_path} holds runs of another configuration (digest "
+                              f"{', '.join(sorted(other))}, this one {digest}): resume with the "
+                              "same --config/--set, or write to a new --out")
+    if any("config_digest" not in r for r in existing):
+        log.warning("%s: runs without a config digest (older records) are taken as this "
+                    "configuration's", runs_path)
+    done = {tuple(r[k] for k in KEY_FIELDS) for r in existing}
     # round robin: every combination gets its i-th run before any gets its (i+1)-th,
     # so an experiment stopped early is still balanced
     todo = [(s, c, k, seed + i) for i in range(runs) for s in scenarios for c in controllers

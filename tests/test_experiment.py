@@ -44,6 +44,10 @@ def test_small_experiment_records_are_complete_and_resumable(tmp_path):
     assert {s["controller"] for s in summary} == {"va", "deterministic", "prescient"}
     for s in summary:
         assert s["runs"] == 2 and sum(s[o] for o in OUTCOMES) == 2
+    assert len({x["config_digest"] for x in runs}) == 1
+    other = run(out, 2, ["--no-plots", "--set", "planner.temperature=2.0"])
+    assert other.returncode == 2 and "another configuration" in other.stderr
+    assert read_runs(out / "runs.jsonl") == runs                  # nothing touched
     table = (out / "summary.md").read_text().splitlines()
     assert len(table) == 2 + len(summary)
     assert all(row.startswith("| alleyway | ") and row.count("|") == 12 for row in table[2:])
