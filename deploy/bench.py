@@ -24,6 +24,7 @@ import json
 import platform
 import time
 from dataclasses import dataclass
+from importlib.metadata import version
 from typing import Any
 
 import jax
@@ -95,7 +96,7 @@ def _case(cfg: Config, controller: str, samples: int, inputs: tuple) -> Case:
     state = mppi.initial_state(params, 0)
     args = (state, *(jnp.asarray(a) for a in (x0, u0, goal, mean, var, origin)))
     t0 = time.perf_counter()
-    compiled = jax.jit(lambda *a: mppi._solve(params, *a, resolution=res)).lower(*args).compile()
+    compiled = mppi.solver(params).lower(*args, resolution=res).compile()
     compile_s = time.perf_counter() - t0
     mem = compiled.memory_analysis()
     mem_mb = ((mem.argument_size_in_bytes + mem.output_size_in_bytes + mem.temp_size_in_bytes)
@@ -104,8 +105,8 @@ def _case(cfg: Config, controller: str, samples: int, inputs: tuple) -> Case:
     return Case(controller, samples, compiled, args, compile_s, mem_mb, [])
 
 
-def bench_planner(cfg: Config, samples: list[int], controllers: list[str], reps: int,
-                  progress=None) -> dict[str, Any]:
+def bench_planner(cfg: Config, samples: list[int], controllers: list[str], reps: int
+                  ) -> dict[str, Any]:
     inputs = planner_inputs(cfg)
     cases = [_case(cfg, c, k, inputs) for k in samples for c in controllers]
     for _ in range(reps):
@@ -113,8 +114,6 @@ def bench_planner(cfg: Config, samples: list[int], controllers: list[str], reps:
             t0 = time.perf_counter()
             jax.block_until_ready(case.fn(*case.args))
             case.times.append(time.perf_counter() - t0)
-        if progress:
-            progress()
     p = cfg.planner
     return {"benchmark": "planner", **device_info(),
             "settings": {"horizon": p.horizon, "iterations": 1, "map_cells": list(inputs[3].shape),
@@ -261,10 +260,9 @@ def bench_bus(cfg: Config, reps: int, burst: int = 200) -> dict[str, Any]:
     finally:
         for s in (pub_s, sub_s, router):
             s.close()
-    return {"benchmark": "bus", **device_info(), "zenoh": zenoh.__version__ if hasattr(
-        zenoh, "__version__") else "", "settings": {"endpoint": "tcp loopback, via a router",
-                                                    "reps": reps, "burst": burst},
-            "cases": results}
+    return {"benchmark": "bus", **device_info(), "zenoh": version("eclipse-zenoh"),
+            "settings": {"endpoint": "tcp loopback, via a router", "reps": reps,
+                         "burst": burst}, "cases": results}
 
 
 def table(result: dict[str, Any]) -> str:
