@@ -89,10 +89,14 @@ def ray_cells(vp: VisibilityParams, origin: Any, resolution: float, states: Any
             jnp.floor((px - origin[0]) / resolution).astype(jnp.int32))
 
 
-def first_blocker(vp: VisibilityParams, mean: Any, origin: Any, resolution: float,
-                  states: Any) -> Any:
-    """Index along each ray (..., rays) int of its first blocking point, `points` if
-    none: a point higher than the ground under the pose plus h, or off the map."""
+def visible_points(vp: VisibilityParams, mean: Any, origin: Any, resolution: float,
+                   states: Any) -> tuple[Any, Any, Any]:
+    """Ray points of poses `states` (..., 6): (row, col) int (..., M), visible (..., M)
+    bool; M = rays * points, ray-major. Vectorised over any leading axes.
+
+    A point blocks its ray when it stands higher than the ground under the pose plus
+    h, or lies off the map; a ray's points up to and including its first blocker are
+    seen, except off the map."""
     h, w = mean.shape
     row, col = ray_cells(vp, origin, resolution, states)
     inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
@@ -103,25 +107,11 @@ def first_blocker(vp: VisibilityParams, mean: Any, origin: Any, resolution: floa
     vc = jnp.clip(jnp.floor((x - origin[0]) / resolution).astype(jnp.int32), 0, w - 1)
     blocker = (elev > jnp.take(flat_mean, vr * w + vc) + vp.height_m) | ~inside
     blocker = blocker.reshape(blocker.shape[:-1] + (vp.rays, vp.points))
-    # a min over indices, not argmax or cumsum: both are several times slower on XLA:CPU
-    return jnp.min(jnp.where(blocker, jnp.arange(vp.points), vp.points), axis=-1)
-
-
-def seen(vp: VisibilityParams, shape: tuple[int, int], row: Any, col: Any, first: Any) -> Any:
-    """Visible (..., M) bool: on the map and not after its ray's first blocker (the
-    blocker itself is seen)."""
-    h, w = shape
+    # the first blocker by a min over indices: argmax and cumsum are several times
+    # slower on XLA:CPU
+    first = jnp.min(jnp.where(blocker, jnp.arange(vp.points), vp.points), axis=-1)
     before = (jnp.arange(vp.points) <= first[..., None]).reshape(row.shape)
-    return before & (col >= 0) & (col < w) & (row >= 0) & (row < h)
-
-
-def visible_points(vp: VisibilityParams, mean: Any, origin: Any, resolution: float,
-                   states: Any) -> tuple[Any, Any, Any]:
-    """Ray points of poses `states` (..., 6): (row, col) int (..., M), visible (..., M)
-    bool; M = rays * points, ray-major. Vectorised over any leading axes."""
-    row, col = ray_cells(vp, origin, resolution, states)
-    first = first_blocker(vp, mean, origin, resolution, states)
-    return row, col, seen(vp, mean.shape, row, col, first)
+    return row, col, before & inside
 
 
 def offset_kernels(vp: VisibilityParams, offsets: tuple[tuple[int, int], ...]) -> np.ndarray:
