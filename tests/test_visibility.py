@@ -151,4 +151,6 @@ def test_batched_update_equals_one_trajectory_at_a_time(rng):
         vp = dataclasses.replace(VP, chunk=chunk)
         got = np.asarray(batched_decayed_variance(vp, *args, jnp.asarray(states),
                                                   jnp.asarray(rows), jnp.asarray(cols), OFFSETS))
-        np.testing.assert_allclose(got, one, rtol=1e-6)    # a leak would be O(1)
+        # float32 sums in another order, amplified by exp(-gamma C) at large counts,
+        # move results by up to a few 1e-6; a leak would move them by O(1)
+        np.testing.assert_allclose(got, one, rtol=2e-5)
