@@ -97,11 +97,11 @@ def _alleyway(rng: np.random.Generator) -> tuple[Pose2, Pose2, list[Obstacle], s
     walls = [Obstacle("box", 40.0, 32.0, 3.0, half_x=32.0, half_y=1.0),
              Obstacle("box", 40.0, 48.0, 3.0, half_x=32.0, half_y=1.0)]
     central = [Obstacle("box", 36.0, 40.0, 2.5, half_x=2.5, half_y=3.5)]
-    # behind the block, one on each side: hidden from the start and from the gaps
-    # until the vehicle clears the block, on the line a fast vehicle takes back
-    # toward the centre
-    hidden = [Obstacle("cylinder", 45.0, 36.8, 2.0, radius=1.2),
-              Obstacle("cylinder", 45.0, 43.2, 2.0, radius=1.2)]
+    # behind the block, one on each side, just inside its edges: hidden from the
+    # centre line until the vehicle is in a gap, on the line a fast vehicle takes
+    # from the gap back toward the goal; the way on is between the two (4.8 m)
+    hidden = [Obstacle("cylinder", 47.0, 36.6, 2.0, radius=1.0),
+              Obstacle("cylinder", 47.0, 43.4, 2.0, radius=1.0)]
     return (Pose2(12.0, 40.0, 0.0), Pose2(62.0, 40.0, 0.0), walls + central + hidden,
             "An alley 14 m wide; a large central obstacle leaves a 3.5 m gap on each side "
             "and hides one obstacle behind each of its sides.")

@@ -9,7 +9,7 @@ import pytest
 
 from common.config import load_config
 from services.planner import mppi
-from services.planner.costs import MapView, exceed_prob, rollout_cost
+from services.planner.costs import MapView, absorbing_crash, exceed_prob, rollout_cost
 from services.plant.dynamics import S, clamp_control, integrate
 
 CFG = load_config(overrides=["planner.samples=256"])
@@ -94,6 +94,41 @@ def test_a_middle_array_and_a_margin_see_a_corner_at_the_vehicles_side():
     assert surface(touching, 2, 0.0) == 0.0
     assert surface(touching, 3, 0.0) > 0.0
     assert surface(clear, 3, 0.0) == 0.0 and surface(clear, 3, 0.2) > 0.0
+
+
+def test_absorbing_crash_against_a_loop(rng):
+    """From the first step with >= 0.5 expected indicators on a well-known cell on,
+    every step costs 5 P; fog (variance above crash_variance) never crashes; 0 = off."""
+    cp = mppi.PlannerParams.from_config(CFG.replace(**{"planner.crash_variance": 0.01})).cost
+    n1, p = PP.horizon + 1, P_POINTS
+    for _ in range(20):
+        expected = (rng.uniform(0, 0.6, (n1, p)) * (rng.uniform(size=(n1, p)) < 0.1)
+                    ).astype(np.float32)
+        qvar = rng.choice([0.0, 0.005, 0.02, 3.0], (n1, 5 * p)).astype(np.float32)
+        got = np.asarray(absorbing_crash(cp, jnp.asarray(expected), jnp.asarray(qvar)))
+        ref, crashed = expected.copy(), False
+        for i in range(n1):
+            crashed = crashed or any(expected[i, j] >= 0.5 and qvar[i, j] < 0.01
+                                     for j in range(p))
+            if crashed:
+                ref[i] = 5.0
+        np.testing.assert_array_equal(got, ref)
+    fog = np.full((n1, 5 * p), 3.0, np.float32)
+    high = np.full((n1, p), 4.0, np.float32)
+    np.testing.assert_array_equal(np.asarray(absorbing_crash(cp, high, fog)), high)
+    np.testing.assert_array_equal(np.asarray(absorbing_crash(PP.cost, high, fog * 0)), high)
+
+    # a wall the rollout drives into: the crash cost charges the steps after the hit too
+    x0 = jnp.asarray([8.0, 0, 0, 20.0, 40.0, 0.0], jnp.float32)
+    go = jnp.tile(jnp.asarray([0.0, 1000.0], jnp.float32), (PP.horizon, 1))
+    states, _, xd = mppi.rollout(PP, x0, jnp.zeros(2), go)
+    m = flat_map()
+    wall = MapView(m.mean.at[150:250, 200:205].set(2.0), m.variance, m.origin, m.resolution)
+    goal = jnp.asarray([60.0, 40.0, 0.0])
+    plain = float(rollout_cost(PP.cost, states, xd, goal, wall, ZERO_VAR)[2])
+    crash = float(rollout_cost(cp, states, xd, goal, wall, ZERO_VAR)[2])
+    first = int(np.argmax(np.asarray(states[:, S.X]) + 2.0 >= 40.0))    # front edge at x = 40
+    assert crash >= cp.w_surface * 5 * p * (n1 - first - 1) > 2 * plain > 0
 
 
 def test_mppi_is_reproducible_and_moves_toward_the_goal():

@@ -55,6 +55,7 @@ class CostParams:
     n_across: int
     estimator: str                 # closed_form | monte_carlo
     samples: int                   # N_theta of the Monte-Carlo estimate
+    crash_variance: float          # absorbing crash on cells known this well; 0 = off
 
     @classmethod
     def from_config(cls, cfg: Config) -> CostParams:
@@ -68,7 +69,7 @@ class CostParams:
                    float(np.sqrt(p.step_sq_threshold)), p.height_threshold_m, p.a_roll_mps2,
                    p.a_max_mps2, p.beta_max_rad, p.v_lat_max_mps,
                    tuple(map(tuple, fp.tolist())), p.footprint_points, p.surface_estimator,
-                   p.surface_samples)
+                   p.surface_samples, p.crash_variance)
 
 
 def exceed_prob(mean: Any, var: Any, threshold: float) -> Any:
@@ -182,6 +183,26 @@ def surface_expectation(c: CostParams, m: MapView, rows: Any, cols: Any, outside
     return jnp.where(outside, 5.0, expected)
 
 
+def absorbing_crash(c: CostParams, expected: Any, query_var: Any) -> Any:
+    """A collision ends the rollout (not in the paper; `crash_variance`, docs/planner.md).
+
+    `expected` (N+1, P) from `surface_expectation`, `query_var` (N+1, 5 P). A step
+    crashes where some footprint point expects at least half an indicator on a
+    cell whose variance is below `crash_variance` (a known obstacle, not fog);
+    from the first crash on, every step pays all 5 P indicators, as a vehicle
+    stopped by the obstacle would for the rest of the horizon. Off (the paper's
+    plain sum over steps) when `crash_variance` is 0.
+    """
+    if c.crash_variance <= 0.0:
+        return expected
+    n_pts = expected.shape[1]
+    known = query_var[:, :n_pts] < c.crash_variance       # the centre cells, OFFSETS[0]
+    hit = jnp.any((expected >= 0.5) & known, axis=1)
+    steps = jnp.arange(hit.shape[0])                  # a min, not a cumsum (slow on XLA:CPU)
+    crashed = steps >= jnp.min(jnp.where(hit, steps, hit.shape[0]))
+    return jnp.where(crashed[:, None], 5.0, expected)
+
+
 def ground_now(m: MapView, states: Any) -> Any:
     """x_0 of Eq. occupied: the mean elevation of the cell under the CG now (i = 0)."""
     h, w = m.mean.shape
@@ -212,8 +233,9 @@ def rollout_cost(c: CostParams, states: Any, xdots: Any, goal: Any, m: MapView,
         + (jnp.abs(beta) >= c.beta_max) + (jnp.abs(states[:-1, S.v]) >= c.v_lat_max))
 
     rows, cols, outside = query_cells(c, m, states)
-    s_surf = c.w_surface * jnp.sum(
-        surface_expectation(c, m, rows, cols, outside, query_var, ground_now(m, states), key))
+    expected = surface_expectation(c, m, rows, cols, outside, query_var, ground_now(m, states),
+                                   key)
+    s_surf = c.w_surface * jnp.sum(absorbing_crash(c, expected, query_var))
 
     d0 = d[0]
     phi = jax.nn.sigmoid(2.0 * (c.activation_distance_m - d0))
