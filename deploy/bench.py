@@ -10,6 +10,11 @@ bus       a map-sized message (two 400 x 400 float32 layers) from one client
           session to another through a real Zenoh router on loopback: one-way
           latency (one message in flight) and throughput (back to back), with
           our codec (encode + put ... decode) and a raw put of the same bytes.
+pipeline  the four services as processes around an embedded router in realtime
+          mode (what `vamppi up --clock realtime` runs): the achieved command
+          rate and the end-to-end latency from a depth frame's publication to
+          the first plant step that applies a command computed from it,
+          followed through the input references in the headers.
 
 Timing: compilation is timed apart (lower + compile) and excluded; every
 repetition is blocked on (`jax.block_until_ready`); medians and p95 over many
@@ -265,12 +270,148 @@ def bench_bus(cfg: Config, reps: int, burst: int = 200) -> dict[str, Any]:
                          "burst": burst}, "cases": results}
 
 
+class ChainLog:
+    """Headers of the pipeline's depth, map, cmd and state messages as they pass
+    (bus-level subscriber callbacks; only the msgpack header is read)."""
+
+    def __init__(self, vehicle: str):
+        import threading
+
+        from common.bus import topic_key
+        self.keys = {t: topic_key(vehicle, t) for t in ("depth", "map", "cmd", "state")}
+        self.lock = threading.Lock()
+        self.depth: dict[int, float] = {}                 # seq -> publish wall time
+        self.map: dict[int, tuple[float, int]] = {}       # seq -> (wall, depth seq)
+        self.cmd: dict[int, tuple[float, int]] = {}       # seq -> (wall, map seq)
+        self.applied: dict[int, float] = {}               # cmd seq -> first state applying it
+        self.states = 0
+        self.stale = 0
+
+    def callbacks(self) -> dict[str, Any]:
+        return {key: (lambda sample, t=topic: self.on(t, sample.payload.to_bytes()))
+                for topic, key in self.keys.items()}
+
+    def _ref(self, h: dict[str, Any], topic: str) -> int | None:
+        for key, seq, _ in h.get("inputs", []):
+            if key == self.keys[topic]:
+                return int(seq)
+        return None
+
+    def on(self, topic: str, payload: bytes) -> None:
+        import msgpack
+        try:
+            h = msgpack.unpackb(payload, raw=False)["header"]
+        except Exception:          # malformed traffic is the codec tests' business
+            return
+        wall = float(h["wall_time"])
+        with self.lock:
+            if topic == "depth":
+                self.depth[int(h["seq"])] = wall
+            elif topic == "map":
+                self.map[int(h["seq"])] = (wall, self._ref(h, "depth"))
+            elif topic == "cmd":
+                self.cmd[int(h["seq"])] = (wall, self._ref(h, "map"))
+            else:
+                self.states += 1
+                seq = self._ref(h, "cmd")
+                if seq is None:
+                    self.stale += 1
+                elif seq not in self.applied:
+                    self.applied[seq] = wall
+
+    def summary(self) -> dict[str, Any]:
+        with self.lock:
+            chains = []
+            for seq, applied in self.applied.items():
+                c_wall, m_seq = self.cmd.get(seq, (None, None))
+                m_wall, d_seq = self.map.get(m_seq, (None, None))
+                d_wall = self.depth.get(d_seq)
+                if None not in (c_wall, m_wall, d_wall):
+                    chains.append((d_wall, m_wall, c_wall, applied))
+            cmd_walls = sorted(w for w, _ in self.cmd.values())
+        out: dict[str, Any] = {"commands": len(cmd_walls), "chains": len(chains),
+                               "states": self.states, "stale_states": self.stale}
+        if len(cmd_walls) > 1:
+            gaps = np.diff(cmd_walls)
+            out["command_rate_hz"] = round((len(cmd_walls) - 1)
+                                           / (cmd_walls[-1] - cmd_walls[0]), 2)
+            out["command_interval"] = _stats_ms(list(gaps))
+        if chains:
+            a = np.asarray(chains)
+            out["end_to_end"] = _stats_ms(list(a[:, 3] - a[:, 0]))
+            out["depth_to_map"] = _stats_ms(list(a[:, 1] - a[:, 0]))
+            out["map_to_cmd"] = _stats_ms(list(a[:, 2] - a[:, 1]))
+            out["cmd_to_applied"] = _stats_ms(list(a[:, 3] - a[:, 2]))
+        return out
+
+
+def bench_pipeline(cfg: Config, overrides: list[str], samples: list[int],
+                   controllers: list[str], duration_s: float) -> dict[str, Any]:
+    """Per controller and K: the whole pipeline in realtime mode for `duration_s` of
+    wall time after the episode starts (or until it ends), on this machine."""
+    from common.bus import Health, Inbox, topic_key
+    from common.messages import Event
+    from deploy.launch import services_up
+    from services.plant.core import OUTCOMES
+    cases = []
+    for controller in controllers:
+        for k in samples:
+            run = [*overrides, "episode.clock=realtime", f"planner.controller={controller}",
+                   f"planner.samples={k}"]
+            chain = ChainLog(cfg.episode.vehicle)
+            events = Inbox(Event, topic_key(cfg.episode.vehicle, "events"), Health(), 1024)
+            subs = {**chain.callbacks(),
+                    events.key: lambda s, ev=events: ev.on_payload(s.payload.to_bytes())}
+            outcome, t_start = "", None
+            t0 = time.monotonic()
+            with services_up(cfg, run, subscriptions=subs):
+                ready_s = time.monotonic() - t0
+                while True:
+                    if t_start is not None and time.monotonic() - t_start > duration_s:
+                        break
+                    ev = events.get(timeout=1.0)
+                    if ev is None:
+                        if time.monotonic() - t0 > duration_s + 600:
+                            raise RuntimeError("pipeline bench: the episode never started")
+                        continue
+                    if ev.kind == "start":
+                        t_start = time.monotonic()
+                    if ev.kind in OUTCOMES:
+                        outcome = ev.kind
+                        break
+                wall = time.monotonic() - (t_start or t0)
+            cases.append({"controller": controller, "samples": k, "scenario":
+                          cfg.episode.scenario, "wall_s": round(wall, 1),
+                          "ready_s": round(ready_s, 1), "outcome": outcome or "running",
+                          **chain.summary()})
+    return {"benchmark": "pipeline", **device_info(),
+            "settings": {"clock": "realtime", "duration_s": duration_s,
+                         "control_rate_hz": round(1.0 / cfg.planner.dt_s, 2),
+                         "overrides": overrides}, "cases": cases}
+
+
 def table(result: dict[str, Any]) -> str:
     """A markdown table of any benchmark's result."""
     kind = result["benchmark"]
     if kind == "planner":
         return planner_table(result)
     head = f"{kind}: {result['device']} ({result['backend']}, jax {result['jax']})"
+    if kind == "pipeline":
+        lines = [head, "", "| controller | K | commands/s | interval p95 ms | end-to-end p50 ms "
+                 "| p95 ms | depth->map p50 | map->cmd p50 | cmd->applied p50 | stale steps "
+                 "| outcome |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+        for c in result["cases"]:
+            e = c.get("end_to_end", {})
+            stage = [c.get(s, {}).get("median_ms", float("nan"))
+                     for s in ("depth_to_map", "map_to_cmd", "cmd_to_applied")]
+            lines.append(f"| {c['controller']} | {c['samples']} "
+                         f"| {c.get('command_rate_hz', 0):.1f} "
+                         f"| {c.get('command_interval', {}).get('p95_ms', float('nan')):.0f} "
+                         f"| {e.get('median_ms', float('nan')):.0f} "
+                         f"| {e.get('p95_ms', float('nan')):.0f} "
+                         + "".join(f"| {x:.0f} " for x in stage)
+                         + f"| {c['stale_states']} / {c['states']} | {c['outcome']} |")
+        return "\n".join(lines)
     if kind == "mapper":
         lines = [head, "", "| camera | fuse ms | inpaint ms | encode ms | total median ms "
                  "| total p95 ms | compile s |", "|---|---|---|---|---|---|---|"]
@@ -289,8 +430,10 @@ def table(result: dict[str, Any]) -> str:
 
 
 def main(cfg: Config, what: str, samples: list[int], controllers: list[str], reps: int,
-         as_json: bool) -> int:
-    if what == "planner":
+         as_json: bool, overrides: list[str] = (), duration_s: float = 30.0) -> int:
+    if what == "pipeline":
+        result = bench_pipeline(cfg, list(overrides), samples, controllers, duration_s)
+    elif what == "planner":
         result = bench_planner(cfg, samples, controllers, reps)
     elif what == "mapper":
         result = bench_mapper(cfg, reps)

@@ -132,8 +132,10 @@ def cmd_scenario(args: argparse.Namespace, cfg: Config) -> int:
 def cmd_bench(args: argparse.Namespace, cfg: Config) -> int:
     from deploy import bench
     from deploy.experiment import parse_list
-    return bench.main(cfg, args.what, parse_list(args.samples_list, int),
-                      parse_list(args.controllers), args.reps, args.json)
+    samples = args.samples_list or ("800" if args.what == "pipeline" else "400,800,1000,4000")
+    controllers = args.controllers or ("va" if args.what == "pipeline" else "va,deterministic")
+    return bench.main(cfg, args.what, parse_list(samples, int), parse_list(controllers),
+                      args.reps, args.json, overrides_from_args(args), args.duration)
 
 
 def cmd_router(args: argparse.Namespace, cfg: Config) -> int:
@@ -252,10 +254,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_scenario)
 
     p = sub.add_parser("bench", help="speed benchmarks (a table, or JSON with --json)")
-    p.add_argument("what", choices=("planner", "mapper", "bus"))
-    p.add_argument("--samples", dest="samples_list", default="400,800,1000,4000",
-                   help="sample counts K")
-    p.add_argument("--controllers", default="va,deterministic")
+    p.add_argument("what", choices=("planner", "mapper", "bus", "pipeline"))
+    p.add_argument("--samples", dest="samples_list",
+                   help="sample counts K (planner: 400,800,1000,4000; pipeline: 800)")
+    p.add_argument("--controllers", help="planner: va,deterministic; pipeline: va")
+    p.add_argument("--duration", type=float, default=30.0,
+                   help="pipeline: wall seconds measured after the episode starts")
+    p.add_argument("--scenario", help="pipeline: episode.scenario (default: the config's)")
     p.add_argument("--reps", type=int, default=20, help="timed repetitions per case")
     p.add_argument("--json", action="store_true", help="one JSON document instead of a table")
     p.add_argument("--config", help="TOML file merged over the defaults")

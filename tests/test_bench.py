@@ -45,3 +45,40 @@ def test_bus_bench_delivers_map_sized_messages_through_a_loopback_router():
     for c in doc["cases"]:
         assert c["bytes"] > 2 * 400 * 400 * 4 and c["reps"] == 10
         assert 0 < c["median_ms"] <= c["p99_ms"] and c["msgs_per_s"] > 0
+
+
+def test_chain_log_follows_depth_map_cmd_to_the_first_state_that_applies_it():
+    import msgpack
+
+    from deploy.bench import ChainLog
+    log = ChainLog("v0")
+
+    def put(topic, seq, wall, inputs=()):
+        log.on(topic, msgpack.packb({"header": {"seq": seq, "wall_time": wall, "inputs": [
+            [log.keys[t], s, 0.0] for t, s in inputs]}}))
+
+    put("depth", 0, 10.00)
+    put("depth", 1, 10.10)
+    put("map", 0, 10.15, [("depth", 1)])                  # the map of the newer frame
+    put("cmd", 5, 10.25, [("state", 3), ("map", 0)])
+    put("state", 0, 10.20)                                # no command: a stale step
+    put("state", 1, 10.26, [("cmd", 5)])                  # the first step applying cmd 5
+    put("state", 2, 10.28, [("cmd", 5)])
+    put("state", 3, 10.30, [("cmd", 9)])                  # a command never seen: no chain
+    log.on("state", b"\xc1 not msgpack")                  # ignored, not raised
+    s = log.summary()
+    assert s["chains"] == 1 and s["commands"] == 1 and s["states"] == 4 and s["stale_states"] == 1
+    assert abs(s["end_to_end"]["median_ms"] - 160.0) < 1e-6     # 10.26 - 10.10
+    assert abs(s["depth_to_map"]["median_ms"] - 50.0) < 1e-6
+    assert abs(s["map_to_cmd"]["median_ms"] - 100.0) < 1e-6
+    assert abs(s["cmd_to_applied"]["median_ms"] - 10.0) < 1e-6
+
+
+def test_pipeline_bench_runs_the_services_in_realtime_and_follows_the_chain():
+    doc = bench_json("pipeline", "--samples", "16", "--controllers", "deterministic",
+                     "--duration", "4", "--scenario", "open-field")
+    assert doc["settings"]["clock"] == "realtime"
+    (c,) = doc["cases"]
+    assert c["controller"] == "deterministic" and c["samples"] == 16
+    assert c["commands"] > 3 and c["chains"] > 3 and c["command_rate_hz"] > 0
+    assert 0 < c["end_to_end"]["median_ms"] <= c["end_to_end"]["p95_ms"]
