@@ -10,6 +10,8 @@ bus       a map-sized message (two 400 x 400 float32 layers) from one client
           session to another through a real Zenoh router on loopback: one-way
           latency (one message in flight) and throughput (back to back), with
           our codec (encode + put ... decode) and a raw put of the same bytes.
+peer      our plain-MPPI iteration against pytorch_mppi's on one problem
+          (deploy/peer.py; the optional extra `.[peer]`).
 pipeline  the four services as processes around an embedded router in realtime
           mode (what `vamppi up --clock realtime` runs): the achieved command
           rate and the end-to-end latency from a depth frame's publication to
@@ -396,6 +398,17 @@ def table(result: dict[str, Any]) -> str:
     if kind == "planner":
         return planner_table(result)
     head = f"{kind}: {result['device']} ({result['backend']}, jax {result['jax']})"
+    if kind == "peer":
+        ours = {c["samples"]: c["median_ms"] for c in result["cases"]
+                if c["implementation"] == "vamppi"}
+        lines = [f"{head}; torch {result['torch']} on {result['torch_device']} "
+                 f"({result['torch_threads']} threads), pytorch_mppi {result['pytorch_mppi']}",
+                 "", "| implementation | K | median ms | p95 ms | time / ours |",
+                 "|---|---|---|---|---|"]
+        for c in result["cases"]:
+            lines.append(f"| {c['implementation']} | {c['samples']} | {c['median_ms']:.1f} "
+                         f"| {c['p95_ms']:.1f} | {c['median_ms'] / ours[c['samples']]:.2f} |")
+        return "\n".join(lines)
     if kind == "pipeline":
         lines = [head, "", "| controller | K | commands/s | interval p95 ms | end-to-end p50 ms "
                  "| p95 ms | depth->map p50 | map->cmd p50 | cmd->applied p50 | stale steps "
@@ -433,6 +446,9 @@ def main(cfg: Config, what: str, samples: list[int], controllers: list[str], rep
          as_json: bool, overrides: list[str] = (), duration_s: float = 30.0) -> int:
     if what == "pipeline":
         result = bench_pipeline(cfg, list(overrides), samples, controllers, duration_s)
+    elif what == "peer":
+        from deploy.peer import bench_peer
+        result = bench_peer(cfg, samples, reps)
     elif what == "planner":
         result = bench_planner(cfg, samples, controllers, reps)
     elif what == "mapper":
