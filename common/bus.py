@@ -69,8 +69,35 @@ def zenoh_config(cfg: BusConfig) -> zenoh.Config:
     return zc
 
 
+# glibc malloc: freed buffers above the (dynamic) mmap threshold go back to the OS,
+# and the heap's top is trimmed past the trim threshold, so every 1.3 MB map
+# message page-faulted its buffers in anew: 6 ms to encode one on this VM, 0.15 ms
+# once they stay (docs/bus.md). Raised once per process; a few hundred MB kept.
+MALLOC_MMAP_THRESHOLD = 64 << 20
+MALLOC_TRIM_THRESHOLD = 256 << 20
+_malloc_tuned = False
+
+
+def keep_large_buffers() -> bool:
+    """Let freed message-sized buffers stay in the process (glibc only; a no-op
+    elsewhere). Returns whether the allocator took the settings."""
+    global _malloc_tuned
+    if not _malloc_tuned:
+        _malloc_tuned = True
+        try:
+            import ctypes
+            libc = ctypes.CDLL("libc.so.6")
+            ok = libc.mallopt(-3, MALLOC_MMAP_THRESHOLD) == 1     # M_MMAP_THRESHOLD
+            ok = libc.mallopt(-1, MALLOC_TRIM_THRESHOLD) == 1 and ok   # M_TRIM_THRESHOLD
+            log.debug("malloc thresholds raised: %s", ok)
+        except (OSError, AttributeError):
+            log.debug("not glibc: malloc thresholds left alone")
+    return _malloc_tuned
+
+
 def open_session(cfg: BusConfig) -> zenoh.Session:
     zenoh.try_init_log_from_env()
+    keep_large_buffers()
     return zenoh.open(zenoh_config(cfg))
 
 

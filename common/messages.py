@@ -174,7 +174,8 @@ M = TypeVar("M", bound=Message)
 def _encode_value(kind: Any, value: Any) -> Any:
     if isinstance(kind, ArraySpec):
         a = np.ascontiguousarray(value)
-        return {"dtype": a.dtype.str, "shape": list(a.shape), "data": a.tobytes()}
+        data = memoryview(a.reshape(-1).view(np.uint8))   # packed from the array's own buffer
+        return {"dtype": a.dtype.str, "shape": list(a.shape), "data": data}
     if kind == "float":
         return float(value)
     if kind == "int":
