@@ -74,6 +74,9 @@ def ray_directions(p: CameraParams) -> np.ndarray:
     return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
 
+REFINE_STEPS = 8     # bisections of the crossing step: 0.1 m / 2^9 = 0.2 mm
+
+
 @partial(jax.jit, static_argnames=("p", "resolution"))
 def render_depth(p: CameraParams, heightmap: jax.Array, origin: jax.Array, resolution: float,
                  cam_position: jax.Array, cam_rotation: jax.Array) -> jax.Array:
@@ -94,21 +97,30 @@ def render_depth(p: CameraParams, heightmap: jax.Array, origin: jax.Array, resol
         return pts[:, 2] - ground, inside
 
     def body(carry, i):
-        t_prev, gap_prev, hit = carry
+        t_prev, gap_prev, t_lo, t_hi = carry
         t = jnp.minimum((i + 1) * p.march_step_m, p.range_m) * jnp.ones_like(t_prev)
         gap, inside = height_gap(t)
-        crossing = (gap <= 0.0) & (gap_prev > 0.0) & inside & jnp.isnan(hit)
-        frac = gap_prev / jnp.maximum(gap_prev - gap, 1e-12)
-        hit = jnp.where(crossing, t_prev + frac * (t - t_prev), hit)
+        crossing = (gap <= 0.0) & (gap_prev > 0.0) & inside & jnp.isnan(t_hi)
+        t_lo = jnp.where(crossing, t_prev, t_lo)       # the first step that ends below
+        t_hi = jnp.where(crossing, t, t_hi)
         # once a ray leaves the map it can no longer hit anything
         gap = jnp.where(inside, gap, jnp.inf)
-        return (t, gap, hit), None
+        return (t, gap, t_lo, t_hi), None
 
     t0 = jnp.zeros(dirs.shape[0], jnp.float32)
     gap0, inside0 = height_gap(t0)
     gap0 = jnp.where(inside0, gap0, jnp.inf)
-    init = (t0, gap0, jnp.full(dirs.shape[0], jnp.nan, jnp.float32))
-    (_, _, hit), _ = jax.lax.scan(body, init, jnp.arange(n_steps))
+    nan = jnp.full(dirs.shape[0], jnp.nan, jnp.float32)
+    (_, _, t_lo, t_hi), _ = jax.lax.scan(body, (t0, gap0, nan, nan), jnp.arange(n_steps))
+    # the crossing bisected inside its step: at a steep face (a block's side is a
+    # 0.2 m bilinear ramp) a secant over the whole step is centimetres off
+    found = ~jnp.isnan(t_hi)
+    t_lo, t_hi = jnp.where(found, t_lo, 0.0), jnp.where(found, t_hi, 0.0)
+    for _ in range(REFINE_STEPS):
+        mid = 0.5 * (t_lo + t_hi)
+        above = height_gap(mid)[0] > 0.0
+        t_lo, t_hi = jnp.where(above, mid, t_lo), jnp.where(above, t_hi, mid)
+    hit = jnp.where(found, 0.5 * (t_lo + t_hi), jnp.nan)
     depth = jnp.where(jnp.isnan(hit), 0.0, hit * dirs_cam[:, 2])
     return depth.reshape(p.height, p.width).astype(jnp.float32)
 
