@@ -75,23 +75,22 @@ def zenoh_config(cfg: BusConfig) -> zenoh.Config:
 # once they stay (docs/bus.md). Raised once per process; a few hundred MB kept.
 MALLOC_MMAP_THRESHOLD = 64 << 20
 MALLOC_TRIM_THRESHOLD = 256 << 20
-_malloc_tuned = False
+_malloc_tuned: bool | None = None
 
 
 def keep_large_buffers() -> bool:
     """Let freed message-sized buffers stay in the process (glibc only; a no-op
     elsewhere). Returns whether the allocator took the settings."""
     global _malloc_tuned
-    if not _malloc_tuned:
-        _malloc_tuned = True
+    if _malloc_tuned is None:
         try:
             import ctypes
             libc = ctypes.CDLL("libc.so.6")
-            ok = libc.mallopt(-3, MALLOC_MMAP_THRESHOLD) == 1     # M_MMAP_THRESHOLD
-            ok = libc.mallopt(-1, MALLOC_TRIM_THRESHOLD) == 1 and ok   # M_TRIM_THRESHOLD
-            log.debug("malloc thresholds raised: %s", ok)
+            _malloc_tuned = (libc.mallopt(-3, MALLOC_MMAP_THRESHOLD) == 1    # M_MMAP_THRESHOLD
+                             and libc.mallopt(-1, MALLOC_TRIM_THRESHOLD) == 1)  # M_TRIM_...
         except (OSError, AttributeError):
-            log.debug("not glibc: malloc thresholds left alone")
+            _malloc_tuned = False
+        log.debug("malloc thresholds raised: %s", _malloc_tuned)
     return _malloc_tuned
 
 
