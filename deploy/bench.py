@@ -355,7 +355,8 @@ class ChainLog:
 
 
 def bench_pipeline(cfg: Config, overrides: list[str], samples: list[int],
-                   controllers: list[str], duration_s: float) -> dict[str, Any]:
+                   controllers: list[str], duration_s: float,
+                   config_path: str | None = None) -> dict[str, Any]:
     """Per controller and K: the whole pipeline in realtime mode for `duration_s` of
     wall time after the episode starts (or until it ends), on this machine."""
     from common.bus import Health, Inbox, topic_key
@@ -373,7 +374,7 @@ def bench_pipeline(cfg: Config, overrides: list[str], samples: list[int],
                     events.key: lambda s, ev=events: ev.on_payload(s.payload.to_bytes())}
             outcome, t_start = "", None
             t0 = time.monotonic()
-            with services_up(cfg, run, subscriptions=subs):
+            with services_up(cfg, run, config_path, subscriptions=subs):
                 ready_s = time.monotonic() - t0
                 while True:
                     if t_start is not None and time.monotonic() - t_start > duration_s:
@@ -450,9 +451,11 @@ def table(result: dict[str, Any]) -> str:
 
 
 def main(cfg: Config, what: str, samples: list[int], controllers: list[str], reps: int,
-         as_json: bool, overrides: list[str] = (), duration_s: float = 30.0) -> int:
+         as_json: bool, overrides: list[str] = (), duration_s: float = 30.0,
+         config_path: str | None = None) -> int:
     if what == "pipeline":
-        result = bench_pipeline(cfg, list(overrides), samples, controllers, duration_s)
+        result = bench_pipeline(cfg, list(overrides), samples, controllers, duration_s,
+                                config_path)
     elif what == "peer":
         from deploy.peer import bench_peer
         result = bench_peer(cfg, samples, reps)

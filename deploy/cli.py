@@ -135,7 +135,7 @@ def cmd_bench(args: argparse.Namespace, cfg: Config) -> int:
     samples = args.samples_list or ("800" if args.what == "pipeline" else "400,800,1000,4000")
     controllers = args.controllers or ("va" if args.what == "pipeline" else "va,deterministic")
     return bench.main(cfg, args.what, parse_list(samples, int), parse_list(controllers),
-                      args.reps, args.json, overrides_from_args(args), args.duration)
+                      args.reps, args.json, overrides_from_args(args), args.duration, args.config)
 
 
 def cmd_router(args: argparse.Namespace, cfg: Config) -> int:
