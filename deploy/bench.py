@@ -95,7 +95,7 @@ def planner_inputs(cfg: Config) -> tuple:
             np.asarray(scn.origin, np.float32), res)
 
 
-def _case(cfg: Config, controller: str, samples: int, inputs: tuple) -> Case:
+def planner_case(cfg: Config, controller: str, samples: int, inputs: tuple) -> Case:
     run_cfg = cfg.replace(**{"planner.controller": controller, "planner.samples": samples,
                              "planner.iterations": 1})
     params = mppi.PlannerParams.from_config(run_cfg)
@@ -115,7 +115,7 @@ def _case(cfg: Config, controller: str, samples: int, inputs: tuple) -> Case:
 def bench_planner(cfg: Config, samples: list[int], controllers: list[str], reps: int
                   ) -> dict[str, Any]:
     inputs = planner_inputs(cfg)
-    cases = [_case(cfg, c, k, inputs) for k in samples for c in controllers]
+    cases = [planner_case(cfg, c, k, inputs) for k in samples for c in controllers]
     for _ in range(reps):
         for case in cases:                          # interleaved: ratios measured side by side
             t0 = time.perf_counter()

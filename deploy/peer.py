@@ -134,7 +134,7 @@ def bench_peer(cfg: Config, samples: list[int], reps: int) -> dict[str, Any]:
                            "pip install -e '.[peer]' (torch, pytorch-mppi)") from exc
     from importlib.metadata import version
 
-    from deploy.bench import _case, device_info, planner_inputs
+    from deploy.bench import device_info, planner_case, planner_inputs
     inputs = planner_inputs(cfg)
     x0, u0, goal, mean, var, origin, res = inputs
     device = "cuda" if torch.cuda.is_available() and jax.default_backend() == "gpu" else "cpu"
@@ -146,7 +146,7 @@ def bench_peer(cfg: Config, samples: list[int], reps: int) -> dict[str, Any]:
     for k in samples:
         params = mppi.PlannerParams.from_config(cfg.replace(**{
             "planner.controller": "deterministic", "planner.samples": k, "planner.iterations": 1}))
-        ours = _case(cfg, "deterministic", k, inputs)
+        ours = planner_case(cfg, "deterministic", k, inputs)
         v, lim = params.vehicle, params.limits
 
         def dynamics(state: Any, action: Any, v=v, lim=lim, params=params) -> Any:
