@@ -10,6 +10,7 @@ key, before anything starts.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import tomllib
 from dataclasses import dataclass, field
@@ -335,3 +336,14 @@ def parameters_markdown() -> str:
             meaning = comment.strip().replace("|", "\\|")
             out.append(f"| `{key.strip()}` | `{value.strip()}` | {meaning} |")
     return "\n".join(out) + "\n"
+
+
+def config_toml(cfg: Config) -> str:
+    """The whole configuration as a TOML file `load_config` reads back to an equal Config
+    (a recording's config, handed to services it feeds)."""
+    lines = []
+    for section, values in cfg.to_dict().items():
+        lines.append(f"[{section}]")
+        lines += [f"{key} = {json.dumps(value)}" for key, value in values.items()]
+        lines.append("")
+    return "\n".join(lines)

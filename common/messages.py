@@ -314,3 +314,54 @@ def decode(payload: bytes, expected: type[M] | None = None) -> M:
         raise _fail(schema, sorted(extra)[0], "is not in the schema")
     return cls(**kwargs)  # type: ignore[return-value]
 
+
+
+# ----------------------------------------------------------------------------- describe
+def peek(payload: bytes) -> tuple[str, Header]:
+    """Schema name and header of a payload without validating its fields (what a
+    recorder or a timing tool needs); raises `DecodeError` like `decode`."""
+    try:
+        raw = msgpack.unpackb(payload, raw=False, strict_map_key=True)
+    except Exception as exc:
+        raise DecodeError(f"not a msgpack message: {type(exc).__name__}: {exc}") from None
+    if not isinstance(raw, dict) or not isinstance(raw.get("schema"), str):
+        raise DecodeError("not a message: no schema name")
+    return raw["schema"], _decode_header(raw["schema"], raw.get("header"))
+
+
+def json_schema(cls: type[Message]) -> dict[str, Any]:
+    """The JSON Schema (draft 2020-12) of the msgpack map `encode` writes for `cls`:
+    what a recording's channels declare. Binary fields (array data) are msgpack bin,
+    shown as base64 strings by JSON tools."""
+    def of(kind: Any) -> dict[str, Any]:
+        if isinstance(kind, ArraySpec):
+            return {"type": "object", "required": ["dtype", "shape", "data"],
+                    "additionalProperties": False,
+                    "description": f"array {kind.dtype} of shape "
+                                   f"({', '.join(map(str, kind.shape))}), raw little-endian bytes",
+                    "properties": {"dtype": {"const": kind.dtype},
+                                   "shape": {"type": "array", "items": {"type": "integer"}},
+                                   "data": {"type": "string", "contentEncoding": "base64"}}}
+        return {"float": {"type": "number"}, "int": {"type": "integer", "minimum": 0},
+                "str": {"type": "string"},
+                "dict_float": {"type": "object", "additionalProperties": {"type": "number"}},
+                }[kind]
+
+    header = {"type": "object", "required": ["seq", "stamp", "wall_time", "source", "inputs"],
+              "properties": {"seq": {"type": "integer", "minimum": 0},
+                             "stamp": {"type": "number", "description": "simulation time, s"},
+                             "wall_time": {"type": "number",
+                                           "description": "publish wall time, s since epoch"},
+                             "source": {"type": "string"},
+                             "inputs": {"type": "array", "items": {
+                                 "type": "array", "prefixItems": [
+                                     {"type": "string"}, {"type": "integer"},
+                                     {"type": "number"}]}}}}
+    props: dict[str, Any] = {"schema": {"const": cls.SCHEMA},
+                             "version": {"const": cls.VERSION}, "header": header}
+    for f in dataclasses.fields(cls):
+        if f.name != "header":
+            props[f.name] = of(f.metadata["kind"])
+    return {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": cls.SCHEMA,
+            "description": (cls.__doc__ or "").strip(), "type": "object",
+            "required": list(props), "additionalProperties": False, "properties": props}

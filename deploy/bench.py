@@ -40,6 +40,7 @@ import numpy as np
 
 from common.config import Config
 from common.scenarios import scenario_of
+from deploy.timing import ChainLog, stats_ms
 from services.planner import mppi
 
 
@@ -145,13 +146,6 @@ def planner_table(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _stats_ms(times: list[float]) -> dict[str, float]:
-    t = np.asarray(times) * 1e3
-    return {"median_ms": round(float(np.median(t)), 3),
-            "p95_ms": round(float(np.percentile(t, 95)), 3),
-            "p99_ms": round(float(np.percentile(t, 99)), 3), "reps": len(t)}
-
-
 def bench_mapper(cfg: Config, reps: int, sizes: tuple[tuple[int, int], ...] = ((0, 0), (320, 240))
                  ) -> dict[str, Any]:
     """Per camera size: fuse, inpaint, encode, and the whole, medians over `reps` frames
@@ -192,7 +186,7 @@ def bench_mapper(cfg: Config, reps: int, sizes: tuple[tuple[int, int], ...] = ((
                 stages[k].append(dt)
         cases.append({"width": cam.width, "height": cam.height, "compile_s": round(compile_s, 2),
                       "map_bytes": len(payload),
-                      **{k: _stats_ms(v) for k, v in stages.items()}})
+                      **{k: stats_ms(v) for k, v in stages.items()}})
     return {"benchmark": "mapper", **device_info(),
             "settings": {"map_cells": [params.size, params.size], "reps": reps}, "cases": cases}
 
@@ -268,7 +262,7 @@ def bench_bus(cfg: Config, reps: int, burst: int = 200) -> dict[str, Any]:
                 rates[codec].append(burst / (got[-1] - t0))
         for codec in (True, False):
             rate = float(np.median(rates[codec]))
-            results.append({"payload": names[codec], "bytes": size, **_stats_ms(lat[codec]),
+            results.append({"payload": names[codec], "bytes": size, **stats_ms(lat[codec]),
                             "msgs_per_s": round(rate, 1), "mb_per_s": round(rate * size / 1e6, 1)})
     finally:
         for s in (pub_s, sub_s, router):
@@ -279,89 +273,18 @@ def bench_bus(cfg: Config, reps: int, burst: int = 200) -> dict[str, Any]:
                          "malloc_tuned": keep_large_buffers()}, "cases": results}
 
 
-class ChainLog:
-    """Headers of the pipeline's depth, map, cmd and state messages as they pass
-    (bus-level subscriber callbacks; only the msgpack header is read)."""
-
-    def __init__(self, vehicle: str):
-        import threading
-
-        from common.bus import topic_key
-        self.keys = {t: topic_key(vehicle, t) for t in ("depth", "map", "cmd", "state")}
-        self.lock = threading.Lock()
-        self.depth: dict[int, float] = {}                 # seq -> publish wall time
-        self.map: dict[int, tuple[float, int]] = {}       # seq -> (wall, depth seq)
-        self.cmd: dict[int, tuple[float, int]] = {}       # seq -> (wall, map seq)
-        self.applied: dict[int, float] = {}               # cmd seq -> first state applying it
-        self.states = 0
-        self.stale = 0
-
-    def callbacks(self) -> dict[str, Any]:
-        return {key: (lambda sample, t=topic: self.on(t, sample.payload.to_bytes()))
-                for topic, key in self.keys.items()}
-
-    def _ref(self, h: dict[str, Any], topic: str) -> int | None:
-        for key, seq, _ in h.get("inputs", []):
-            if key == self.keys[topic]:
-                return int(seq)
-        return None
-
-    def on(self, topic: str, payload: bytes) -> None:
-        import msgpack
-        try:
-            h = msgpack.unpackb(payload, raw=False)["header"]
-        except Exception:          # malformed traffic is the codec tests' business
-            return
-        wall = float(h["wall_time"])
-        with self.lock:
-            if topic == "depth":
-                self.depth[int(h["seq"])] = wall
-            elif topic == "map":
-                self.map[int(h["seq"])] = (wall, self._ref(h, "depth"))
-            elif topic == "cmd":
-                self.cmd[int(h["seq"])] = (wall, self._ref(h, "map"))
-            else:
-                self.states += 1
-                seq = self._ref(h, "cmd")
-                if seq is None:
-                    self.stale += 1
-                elif seq not in self.applied:
-                    self.applied[seq] = wall
-
-    def summary(self) -> dict[str, Any]:
-        with self.lock:
-            chains = []
-            for seq, applied in self.applied.items():
-                c_wall, m_seq = self.cmd.get(seq, (None, None))
-                m_wall, d_seq = self.map.get(m_seq, (None, None))
-                d_wall = self.depth.get(d_seq)
-                if None not in (c_wall, m_wall, d_wall):
-                    chains.append((d_wall, m_wall, c_wall, applied))
-            cmd_walls = sorted(w for w, _ in self.cmd.values())
-        out: dict[str, Any] = {"commands": len(cmd_walls), "chains": len(chains),
-                               "states": self.states, "stale_states": self.stale}
-        if len(cmd_walls) > 1:
-            gaps = np.diff(cmd_walls)
-            out["command_rate_hz"] = round((len(cmd_walls) - 1)
-                                           / (cmd_walls[-1] - cmd_walls[0]), 2)
-            out["command_interval"] = _stats_ms(list(gaps))
-        if chains:
-            a = np.asarray(chains)
-            out["end_to_end"] = _stats_ms(list(a[:, 3] - a[:, 0]))
-            out["depth_to_map"] = _stats_ms(list(a[:, 1] - a[:, 0]))
-            out["map_to_cmd"] = _stats_ms(list(a[:, 2] - a[:, 1]))
-            out["cmd_to_applied"] = _stats_ms(list(a[:, 3] - a[:, 2]))
-        return out
-
-
 def bench_pipeline(cfg: Config, overrides: list[str], samples: list[int],
                    controllers: list[str], duration_s: float,
-                   config_path: str | None = None) -> dict[str, Any]:
+                   config_path: str | None = None, record: str | None = None) -> dict[str, Any]:
     """Per controller and K: the whole pipeline in realtime mode for `duration_s` of
-    wall time after the episode starts (or until it ends), on this machine."""
+    wall time after the episode starts (or until it ends), on this machine.
+    `record`: an MCAP file per case (`-<controller>-<K>` added when several), for
+    `vamppi timing` to analyse the very same messages."""
+    from pathlib import Path
+
     from common.bus import Health, Inbox, topic_key
     from common.messages import Event
-    from deploy.launch import services_up
+    from deploy.launch import recording_hook, services_up
     from services.plant.core import OUTCOMES
     cases = []
     for controller in controllers:
@@ -373,8 +296,18 @@ def bench_pipeline(cfg: Config, overrides: list[str], samples: list[int],
             subs = {**chain.callbacks(),
                     events.key: lambda s, ev=events: ev.on_payload(s.payload.to_bytes())}
             outcome, t_start = "", None
+            recorded: dict[str, Any] = {}
+            hook = None
+            if record:
+                path = Path(record)
+                if len(controllers) * len(samples) > 1:
+                    path = path.with_name(f"{path.stem}-{controller}-{k}{path.suffix}")
+                case_cfg = cfg.replace(**{"episode.clock": "realtime",
+                                          "planner.controller": controller,
+                                          "planner.samples": k})
+                hook = recording_hook(case_cfg, str(path), recorded)
             t0 = time.monotonic()
-            with services_up(cfg, run, config_path, subscriptions=subs):
+            with services_up(cfg, run, config_path, subscriptions=subs, on_session=hook):
                 ready_s = time.monotonic() - t0
                 while True:
                     if t_start is not None and time.monotonic() - t_start > duration_s:
@@ -393,7 +326,7 @@ def bench_pipeline(cfg: Config, overrides: list[str], samples: list[int],
             cases.append({"controller": controller, "samples": k, "scenario":
                           cfg.episode.scenario, "wall_s": round(wall, 1),
                           "ready_s": round(ready_s, 1), "outcome": outcome or "running",
-                          **chain.summary()})
+                          **chain.summary(), **recorded})
     return {"benchmark": "pipeline", **device_info(),
             "settings": {"clock": "realtime", "duration_s": duration_s,
                          "control_rate_hz": round(1.0 / cfg.planner.dt_s, 2),
@@ -452,10 +385,10 @@ def table(result: dict[str, Any]) -> str:
 
 def main(cfg: Config, what: str, samples: list[int], controllers: list[str], reps: int,
          as_json: bool, overrides: list[str] = (), duration_s: float = 30.0,
-         config_path: str | None = None) -> int:
+         config_path: str | None = None, record: str | None = None) -> int:
     if what == "pipeline":
         result = bench_pipeline(cfg, list(overrides), samples, controllers, duration_s,
-                                config_path)
+                                config_path, record)
     elif what == "peer":
         from deploy.peer import bench_peer
         result = bench_peer(cfg, samples, reps)

@@ -49,7 +49,7 @@ def add_bus_args(p: argparse.ArgumentParser) -> None:
 
 def overrides_from_args(args: argparse.Namespace) -> list[str]:
     """The --set list plus the shorthand flags, as section.key=value strings."""
-    out = list(args.set)
+    out = list(getattr(args, "set", []))
     for flag, key in (("scenario", "episode.scenario"), ("controller", "planner.controller"),
                       ("samples", "planner.samples"), ("clock", "episode.clock"),
                       ("seed", "episode.seed"), ("vehicle", "episode.vehicle"),
@@ -65,7 +65,7 @@ def overrides_from_args(args: argparse.Namespace) -> list[str]:
 
 
 def config_from_args(args: argparse.Namespace) -> Config:
-    return load_config(args.config, overrides_from_args(args))
+    return load_config(getattr(args, "config", None), overrides_from_args(args))
 
 
 def _setup_logging(verbose: bool) -> None:
@@ -135,7 +135,8 @@ def cmd_bench(args: argparse.Namespace, cfg: Config) -> int:
     samples = args.samples_list or ("800" if args.what == "pipeline" else "400,800,1000,4000")
     controllers = args.controllers or ("va" if args.what == "pipeline" else "va,deterministic")
     return bench.main(cfg, args.what, parse_list(samples, int), parse_list(controllers),
-                      args.reps, args.json, overrides_from_args(args), args.duration, args.config)
+                      args.reps, args.json, overrides_from_args(args), args.duration, args.config,
+                      args.record)
 
 
 def cmd_router(args: argparse.Namespace, cfg: Config) -> int:
@@ -200,12 +201,109 @@ def cmd_up(args: argparse.Namespace, cfg: Config) -> int:
     from deploy.launch import up
     signal.signal(signal.SIGTERM, _interrupt)     # SIGTERM unwinds like Ctrl-C: children stop
     try:
-        summary = up(cfg, overrides_from_args(args), args.config, timeout_s=args.wall_timeout)
+        summary = up(cfg, overrides_from_args(args), args.config, timeout_s=args.wall_timeout,
+                     record=args.record)
     except KeyboardInterrupt:
         print("vamppi up: interrupted, every service stopped", file=sys.stderr)
         return 130
     print(json.dumps(summary), flush=True)
     return 0 if summary["outcome"] == "success" else 1
+
+
+def cmd_record(args: argparse.Namespace, cfg: Config) -> int:
+    """Record every sample under the key expression until Ctrl-C / SIGTERM / --duration."""
+    from common.bus import PREFIX, open_session
+    from deploy.recording import Recorder, recording_metadata
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    keys = args.keys or f"{PREFIX}/{cfg.episode.vehicle}/**"
+    log = logging.getLogger(__name__)
+    with open_session(cfg.bus) as session:
+        rec = Recorder(session, keys, args.output, recording_metadata(cfg.to_dict(), keys),
+                       flush_interval_s=args.flush_interval)
+        log.info("recording %s to %s (Ctrl-C stops)", keys, args.output)
+        stop.wait(args.duration)
+        stats = rec.stop()
+    stats.pop("publishers", None)
+    print(json.dumps(stats), flush=True)
+    return 0
+
+
+def cmd_recover(args: argparse.Namespace, cfg: Config) -> int:
+    from deploy.recording import is_complete, recover
+    src = Path(args.file)
+    out = Path(args.output) if args.output else src.with_suffix(".recovered.mcap")
+    if is_complete(src) and not args.force:
+        print(f"vamppi recover: {src} is complete (has its summary); nothing to do "
+              "(--force rewrites it anyway)", file=sys.stderr)
+        return 0
+    try:
+        report = recover(src, out)
+    except (OSError, ValueError) as exc:
+        print(f"vamppi recover: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps(report), flush=True)
+    return 0
+
+
+def cmd_replay(args: argparse.Namespace, cfg: Config) -> int:
+    from deploy.experiment import parse_list
+    topics = parse_list(args.topics) if args.topics else None
+    if args.feed:
+        from deploy.replay import feed
+
+        def progress(r: dict[str, Any]) -> None:
+            n = sum(r["compared"].values())
+            if n % 20 == 0:
+                logging.getLogger(__name__).info("compared %d outputs, %d identical", n,
+                                                 r["identical"])
+        try:
+            overrides = [o for o in overrides_from_args(args) if not o.startswith("bus.")]
+            report = feed(args.file, parse_list(args.feed), overrides,
+                          keep_going=args.keep_going, progress=progress)
+        except ValueError as exc:
+            print(f"vamppi replay: {exc}", file=sys.stderr)
+            return 2
+        print(json.dumps(report), flush=True)
+        div = report["first_divergence"]
+        if div is None and report["bit_identical"]:
+            print(f"identical: {report['identical']} outputs "
+                  f"({', '.join(report['compared_topics'])}) bit for bit", file=sys.stderr)
+            return 0
+        print(f"first divergence: {div}", file=sys.stderr)
+        return 1
+    from common.bus import open_session
+    from deploy.replay import replay
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    with open_session(cfg.bus) as session:
+        report = replay(session, args.file, args.rate, topics, args.loop, args.start_offset,
+                        stop)
+    print(json.dumps(report), flush=True)
+    return 0
+
+
+def cmd_timing(args: argparse.Namespace, cfg: Config) -> int:
+    from deploy import timing
+    result = timing.analyse(args.file)
+    if args.plots:
+        for path in timing.plots(result, args.plots):
+            print(f"wrote {path}", file=sys.stderr)
+    print(json.dumps(timing.public(result)) if args.json else timing.table(result), flush=True)
+    return 0
+
+
+def cmd_export_foxglove(args: argparse.Namespace, cfg: Config) -> int:
+    from deploy.foxglove import export
+    try:
+        report = export(args.input, args.output, args.map_stride, args.rollouts)
+    except OSError as exc:
+        print(f"vamppi export-foxglove: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps(report), flush=True)
+    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -218,7 +316,56 @@ def build_parser() -> argparse.ArgumentParser:
     add_config_args(p)
     p.add_argument("--wall-timeout", type=float, default=900.0,
                    help="give up after this many wall-clock seconds")
+    p.add_argument("--record", metavar="FILE.mcap", help="record every message of the episode")
     p.set_defaults(func=cmd_up)
+
+    p = sub.add_parser("record", help="record bus traffic to MCAP (Ctrl-C stops)")
+    p.add_argument("-o", "--output", required=True, metavar="FILE.mcap")
+    p.add_argument("--keys", help="key expression (default vamppi/<vehicle>/**)")
+    p.add_argument("--duration", type=float, help="stop after this many seconds")
+    p.add_argument("--flush-interval", type=float, default=0.5,
+                   help="seconds between chunk flushes: what a crash may lose")
+    add_config_args(p)
+    add_bus_args(p)
+    p.set_defaults(func=cmd_record)
+
+    p = sub.add_parser("recover", help="make a crashed recording readable and complete")
+    p.add_argument("file")
+    p.add_argument("-o", "--output", help="default FILE.recovered.mcap")
+    p.add_argument("--force", action="store_true", help="rewrite even a complete file")
+    p.set_defaults(func=cmd_recover)
+
+    p = sub.add_parser("replay", help="publish a recording, or feed it to fresh services")
+    p.add_argument("file")
+    p.add_argument("--rate", type=float, default=1.0, help="time scale; 0 = as fast as possible")
+    p.add_argument("--topics", help="comma-separated topics or keys (default: all)")
+    p.add_argument("--loop", action="store_true")
+    p.add_argument("--start-offset", type=float, default=0.0, metavar="S",
+                   help="skip the first S seconds")
+    p.add_argument("--feed", metavar="SERVICES",
+                   help="start fresh services (sensor, mapper, planner) in lockstep, feed them "
+                        "the recorded inputs and compare their outputs")
+    p.add_argument("--compare", action="store_true",
+                   help="with --feed: report the first divergence (the default with --feed)")
+    p.add_argument("--keep-going", action="store_true",
+                   help="with --feed: go on after the first divergence")
+    add_config_args(p)
+    add_bus_args(p)
+    p.set_defaults(func=cmd_replay)
+
+    p = sub.add_parser("timing", help="rates, latencies, chain and solve times of a recording")
+    p.add_argument("file")
+    p.add_argument("--json", action="store_true")
+    p.add_argument("--plots", metavar="DIR")
+    p.set_defaults(func=cmd_timing)
+
+    p = sub.add_parser("export-foxglove", help="a recording in encodings Foxglove decodes")
+    p.add_argument("input")
+    p.add_argument("output")
+    p.add_argument("--map-stride", type=int, default=1,
+                   help="export every n-th map (maps are 1.7 MB each as JSON)")
+    p.add_argument("--rollouts", type=int, default=30, help="sampled rollouts drawn per plan")
+    p.set_defaults(func=cmd_export_foxglove)
 
     p = sub.add_parser("service", help="run one service on its own")
     p.add_argument("name", choices=sorted(SERVICE_MAINS))
@@ -261,6 +408,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--duration", type=float, default=30.0,
                    help="pipeline: wall seconds measured after the episode starts")
     p.add_argument("--scenario", help="pipeline: episode.scenario (default: the config's)")
+    p.add_argument("--record", metavar="FILE.mcap",
+                   help="pipeline: record each case (vamppi timing analyses the same run)")
     p.add_argument("--reps", type=int, default=20, help="timed repetitions per case")
     p.add_argument("--json", action="store_true", help="one JSON document instead of a table")
     p.add_argument("--config", help="TOML file merged over the defaults")

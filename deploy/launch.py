@@ -22,7 +22,7 @@ import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
-from common.bus import SERVICES, Health, Inbox, alive_instances, open_session, topic_key
+from common.bus import PREFIX, SERVICES, Health, Inbox, alive_instances, open_session, topic_key
 from common.config import BusConfig, Config
 from common.messages import Event
 from services.plant.core import OUTCOMES
@@ -72,18 +72,22 @@ def stop_all(procs: dict[str, subprocess.Popen], grace_s: float = 5.0) -> None:
 @contextlib.contextmanager
 def services_up(cfg: Config, overrides: list[str], config_path: str | None = None,
                 services: tuple[str, ...] = SERVICES, ready_timeout_s: float = 300.0,
-                subscriptions: dict[str, Callable[[Any], None]] | None = None
+                subscriptions: dict[str, Callable[[Any], None]] | None = None,
+                on_session: Callable[[Any], Callable[[], None]] | None = None
                 ) -> Iterator[tuple[Any, str, dict[str, subprocess.Popen]]]:
     """Router + the named services, ready (every token up). Yields (session, endpoint, procs).
 
     `subscriptions` (key -> callback) are declared on the router's session before
-    any service starts, so nothing the services publish is missed.
+    any service starts, so nothing the services publish is missed; so is
+    `on_session(session)` (a recorder), whose returned finaliser runs after every
+    service has stopped.
     """
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     with open_session(router_config(port)) as session:
         for key, callback in (subscriptions or {}).items():
             session.declare_subscriber(key, callback)
+        finish = on_session(session) if on_session is not None else None
         procs = {name: spawn_service(name, endpoint, overrides, config_path) for name in services}
         try:
             deadline = time.monotonic() + ready_timeout_s
@@ -102,11 +106,35 @@ def services_up(cfg: Config, overrides: list[str], config_path: str | None = Non
             yield session, endpoint, procs
         finally:
             stop_all(procs)
+            if finish is not None:
+                finish()
+
+
+def recording_hook(cfg: Config, path: str, summary: dict[str, Any]
+                   ) -> Callable[[Any], Callable[[], None]]:
+    """An `on_session` that records every key of the vehicle to `path`; the recorder's
+    statistics land in `summary["recording"]`."""
+    from deploy.recording import Recorder, recording_metadata
+
+    def start(session: Any) -> Callable[[], None]:
+        keys = f"{PREFIX}/{cfg.episode.vehicle}/**"
+        rec = Recorder(session, keys, path, recording_metadata(cfg.to_dict(), keys))
+        log.info("recording %s to %s", keys, path)
+
+        def finish() -> None:
+            stats = rec.stop()
+            summary["recording"] = {"path": path, "messages": stats["messages"],
+                                    "missing": stats["missing"],
+                                    "undecodable": stats["undecodable"],
+                                    "max_backlog": stats["max_backlog"]}
+        return finish
+    return start
 
 
 def up(cfg: Config, overrides: list[str], config_path: str | None = None,
-       timeout_s: float = 900.0) -> dict[str, Any]:
-    """Run one episode across processes; returns the summary record."""
+       timeout_s: float = 900.0, record: str | None = None) -> dict[str, Any]:
+    """Run one episode across processes (recorded to `record` if given); returns the
+    summary record."""
     summary: dict[str, Any] = {
         "scenario": cfg.episode.scenario, "controller": cfg.planner.controller,
         "samples": cfg.planner.samples, "seed": cfg.episode.seed, "outcome": "error",
@@ -115,7 +143,9 @@ def up(cfg: Config, overrides: list[str], config_path: str | None = None,
     wall0 = time.monotonic()
     try:
         with services_up(cfg, overrides, config_path, subscriptions={
-                events.key: lambda s: events.on_payload(s.payload.to_bytes())}) as (_, _, procs):
+                events.key: lambda s: events.on_payload(s.payload.to_bytes())},
+                on_session=recording_hook(cfg, record, summary) if record else None
+                ) as (_, _, procs):
             log.info("all services up after %.1f s", time.monotonic() - wall0)
             start_wall = None
             deadline = time.monotonic() + timeout_s

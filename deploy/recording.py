@@ -1,0 +1,379 @@
+"""Bus recordings in MCAP: the writer, the recorder on the bus, reading and recovery.
+
+A recording holds every sample of the recorded keys, as it arrived:
+
+- one MCAP channel per key, message encoding `msgpack` (the payload exactly as it
+  travelled), the channel's schema the JSON Schema of its message type
+  (`common.messages.json_schema`; a payload no schema matches is still recorded,
+  on a channel without schema, and counted);
+- `log_time` = receive wall time, `publish_time` = the header's publish wall
+  time, `sequence` = the header's seq (per publisher);
+- zstd chunks, message and chunk indexes, statistics, CRCs (the `mcap` library's
+  defaults);
+- metadata `vamppi` (config as JSON, scenario, vehicle, clock, key expression,
+  git commit), `versions` (Python packages) and, at a clean stop,
+  `vamppi.recording` (counts, seq gaps per publisher, largest backlog).
+
+Crash safety: the open chunk is closed and handed to the OS at least every
+`flush_interval_s` (0.5 s), so a SIGKILLed recorder loses at most that much plus
+its backlog; `recover` (or `iter_messages`, which reads a file without summary
+record by record) gives every message of the complete chunks.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import json
+import logging
+import os
+import platform
+import subprocess
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from importlib import metadata as importlib_metadata
+from pathlib import Path
+from typing import IO, Any
+
+from mcap.reader import make_reader
+from mcap.records import Channel, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+from common.messages import MESSAGE_TYPES, DecodeError, json_schema, peek
+
+log = logging.getLogger(__name__)
+
+PROFILE = "vamppi"
+MESSAGE_ENCODING = "msgpack"
+FLUSH_INTERVAL_S = 0.5
+CHUNK_SIZE = 8 << 20
+PACKAGES = ("vamppi", "eclipse-zenoh", "jax", "jaxlib", "numpy", "mcap", "msgpack",
+            "opencv-python-headless", "zstandard")
+
+
+# ----------------------------------------------------------------------------- provenance
+def git_commit(path: Path | None = None) -> str:
+    """HEAD of the checkout this code runs from ("+dirty" if it has changes), or "unknown"."""
+    where = path or Path(__file__).resolve().parent.parent
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=where, capture_output=True,
+                              text=True, timeout=5, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
+                               cwd=where, capture_output=True, text=True, timeout=5).stdout
+        return head + ("+dirty" if dirty.strip() else "")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def package_versions() -> dict[str, str]:
+    out = {"python": platform.python_version()}
+    for name in PACKAGES:
+        try:
+            out[name] = importlib_metadata.version(name)
+        except importlib_metadata.PackageNotFoundError:
+            out[name] = "not installed"
+    return out
+
+
+def recording_metadata(cfg_dict: dict[str, Any] | None, keys: str) -> dict[str, dict[str, str]]:
+    """The metadata records written at the start of a recording."""
+    episode = (cfg_dict or {}).get("episode", {})
+    return {"vamppi": {"config": json.dumps(cfg_dict or {}), "keys": keys,
+                       "scenario": str(episode.get("scenario", "")),
+                       "vehicle": str(episode.get("vehicle", "")),
+                       "clock": str(episode.get("clock", "")),
+                       "git_commit": git_commit(), "host": platform.node(),
+                       "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")},
+            "versions": package_versions()}
+
+
+# ----------------------------------------------------------------------------- writer
+@dataclass
+class PublisherSeq:
+    """Seq bookkeeping of one publisher on one key."""
+    count: int = 0
+    first: int = -1
+    last: int = -1
+    missing: int = 0                          # seqs skipped (a gap of 3 counts 3)
+    gaps: list[tuple[int, int]] = field(default_factory=list)   # first few (from, to)
+    backwards: int = 0                        # seq went down: a restart or reordering
+
+    def see(self, seq: int) -> None:
+        if self.count and seq != self.last + 1:
+            if seq > self.last + 1:
+                self.missing += seq - self.last - 1
+                if len(self.gaps) < 20:
+                    self.gaps.append((self.last + 1, seq - 1))
+            else:
+                self.backwards += 1
+        if not self.count:
+            self.first = seq
+        self.count += 1
+        self.last = seq
+
+
+class RecordingWriter:
+    """Writes bus samples into an MCAP file (no bus here: `Recorder` feeds it).
+
+    Not thread-safe: one thread calls `add`, `tick` and `close`.
+    """
+
+    def __init__(self, output: str | Path | IO[bytes], meta: dict[str, dict[str, str]],
+                 flush_interval_s: float = FLUSH_INTERVAL_S, chunk_size: int = CHUNK_SIZE):
+        self._file = open(output, "wb") if isinstance(output, (str, Path)) else None  # noqa: SIM115
+        stream = self._file if self._file is not None else output
+        self._w = Writer(stream, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+        self._w.start(profile=PROFILE, library=f"vamppi {package_versions()['vamppi']}")
+        for name, data in meta.items():
+            self._w.add_metadata(name, data)
+        self._w.flush()
+        self.flush_interval_s = flush_interval_s
+        self._last_flush = time.monotonic()
+        self._dirty = False
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self.publishers: dict[tuple[str, str], PublisherSeq] = collections.defaultdict(
+            PublisherSeq)
+        self.messages = 0
+        self.undecodable = 0
+        self.bytes = 0
+        self.closed = False
+
+    def _channel(self, key: str, schema: str | None) -> int:
+        if key not in self._channels:
+            schema_id = 0
+            cls = MESSAGE_TYPES.get(schema or "")
+            if cls is not None:
+                if cls.SCHEMA not in self._schemas:
+                    self._schemas[cls.SCHEMA] = self._w.register_schema(
+                        cls.SCHEMA, "jsonschema", json.dumps(json_schema(cls)).encode())
+                schema_id = self._schemas[cls.SCHEMA]
+            self._channels[key] = self._w.register_channel(
+                key, MESSAGE_ENCODING, schema_id,
+                {"schema": schema or "", "version": str(cls.VERSION) if cls else ""})
+        return self._channels[key]
+
+    def add(self, key: str, payload: bytes, log_time_ns: int) -> None:
+        """One sample as received on `key` at `log_time_ns` (wall clock, ns)."""
+        try:
+            schema, header = peek(payload)
+            publish_ns, seq = int(header.wall_time * 1e9), header.seq
+            self.publishers[(key, header.source)].see(seq)
+        except DecodeError as exc:
+            schema, publish_ns, seq = None, log_time_ns, 0
+            self.undecodable += 1
+            log.warning("recording an undecodable payload on %s: %s", key, exc)
+        self._w.add_message(self._channel(key, schema), log_time=log_time_ns, data=payload,
+                            publish_time=publish_ns, sequence=seq & 0xFFFFFFFF)
+        self.messages += 1
+        self.bytes += len(payload)
+        self._dirty = True
+        self.tick()
+
+    def tick(self) -> None:
+        """Close the open chunk and hand it to the OS if it is older than the interval."""
+        if self._dirty and time.monotonic() - self._last_flush >= self.flush_interval_s:
+            self.flush()
+
+    def flush(self) -> None:
+        self._w.flush()
+        self._last_flush = time.monotonic()
+        self._dirty = False
+
+    def summary(self) -> dict[str, Any]:
+        pubs = [{"key": k, "source": s, **dataclasses.asdict(p)}
+                for (k, s), p in sorted(self.publishers.items())]
+        return {"messages": self.messages, "bytes": self.bytes,
+                "undecodable": self.undecodable,
+                "missing": sum(p.missing for p in self.publishers.values()),
+                "backwards": sum(p.backwards for p in self.publishers.values()),
+                "publishers": pubs}
+
+    def close(self, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+        """Write the statistics metadata, the summary section and close the file."""
+        if self.closed:
+            return self.summary()
+        out = {**self.summary(), **(extra or {})}
+        self._w.add_metadata("vamppi.recording", {k: json.dumps(v) for k, v in out.items()})
+        self._w.finish()
+        if self._file is not None:
+            self._file.close()
+        self.closed = True
+        return out
+
+
+# ----------------------------------------------------------------------------- on the bus
+class Recorder:
+    """Subscribes to `keys` on a session and records every sample to `path`.
+
+    The Zenoh callback only stamps and queues the sample (never blocks, never
+    drops); a writer thread drains the queue into a `RecordingWriter` and
+    flushes on the interval even when the bus is quiet.
+    """
+
+    def __init__(self, session: Any, keys: str, path: str | Path,
+                 meta: dict[str, dict[str, str]], flush_interval_s: float = FLUSH_INTERVAL_S):
+        self.keys, self.path = keys, Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._writer = RecordingWriter(self.path, meta, flush_interval_s)
+        self._queue: collections.deque[tuple[str, bytes, int]] = collections.deque()
+        self._cv = threading.Condition()
+        self._stop = False
+        self.max_backlog = 0
+        self.received = 0
+        self._thread = threading.Thread(target=self._run, name="recorder", daemon=True)
+        self._thread.start()
+        self._sub = session.declare_subscriber(keys, self._on_sample)
+
+    def _on_sample(self, sample: Any) -> None:
+        item = (str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
+        with self._cv:
+            self._queue.append(item)
+            self.received += 1
+            self.max_backlog = max(self.max_backlog, len(self._queue))
+            self._cv.notify()
+
+    def _run(self) -> None:
+        while True:
+            with self._cv:
+                self._cv.wait_for(lambda: self._queue or self._stop,
+                                  timeout=self._writer.flush_interval_s / 5)
+                batch = list(self._queue)
+                self._queue.clear()
+                stop = self._stop
+            for key, payload, t in batch:
+                self._writer.add(key, payload, t)
+            self._writer.tick()
+            if stop and not batch:
+                return
+
+    @property
+    def messages(self) -> int:
+        return self._writer.messages
+
+    def stop(self, drain_s: float = 0.2) -> dict[str, Any]:
+        """Wait `drain_s` for samples in flight, undeclare, drain the queue, write the
+        summary and close; returns the statistics."""
+        time.sleep(drain_s)
+        try:
+            self._sub.undeclare()
+        except Exception:             # the session may already be closed
+            pass
+        with self._cv:
+            self._stop = True
+            self._cv.notify()
+        self._thread.join()
+        return self._writer.close({"max_backlog": self.max_backlog, "keys": self.keys})
+
+
+# ----------------------------------------------------------------------------- reading
+@dataclass(frozen=True)
+class Recorded:
+    key: str
+    log_time_ns: int
+    publish_time_ns: int
+    sequence: int
+    data: bytes
+
+
+def _stream_records(f: IO[bytes]) -> Iterator[Any]:
+    """Every complete record, CRC-checked; stops quietly at a truncated tail."""
+    reader = StreamReader(f, skip_magic=False, emit_chunks=False, validate_crcs=True)
+    it = reader.records
+    while True:
+        try:
+            rec = next(it)
+        except StopIteration:
+            return
+        except Exception as exc:       # truncated record or chunk: the file ends here
+            log.info("recording ends in an incomplete record (%s: %s)", type(exc).__name__, exc)
+            return
+        yield rec
+
+
+def is_complete(path: str | Path) -> bool:
+    """Whether the file has its summary (a clean stop); False for a crashed recording."""
+    with open(path, "rb") as f:
+        try:
+            summary = make_reader(f).get_summary()
+        except Exception:
+            return False
+        return summary is not None
+
+
+def iter_messages(path: str | Path, keys: set[str] | None = None,
+                  log_time_order: bool = True) -> Iterator[Recorded]:
+    """The messages of a recording (of `keys` only, if given). A complete file is read
+    through its index in log-time order, CRCs checked; a crashed one record by record
+    up to its last complete chunk."""
+    with open(path, "rb") as f:
+        if is_complete(path):
+            reader = make_reader(f, validate_crcs=True)
+            for _, channel, msg in reader.iter_messages(topics=sorted(keys) if keys else None,
+                                                        log_time_order=log_time_order):
+                yield Recorded(channel.topic, msg.log_time, msg.publish_time, msg.sequence,
+                               msg.data)
+            return
+        channels: dict[int, str] = {}
+        for rec in _stream_records(f):
+            if isinstance(rec, Channel):
+                channels[rec.id] = rec.topic
+            elif isinstance(rec, Message):
+                key = channels.get(rec.channel_id, "")
+                if keys is None or key in keys:
+                    yield Recorded(key, rec.log_time, rec.publish_time, rec.sequence, rec.data)
+
+
+def read_metadata(path: str | Path) -> dict[str, dict[str, str]]:
+    """Every metadata record by name (a crashed file: those before its truncated tail)."""
+    with open(path, "rb") as f:
+        if is_complete(path):
+            return {m.name: dict(m.metadata) for m in make_reader(f).iter_metadata()}
+        return {r.name: dict(r.metadata) for r in _stream_records(f) if isinstance(r, Metadata)}
+
+
+def recorded_config(path: str | Path) -> dict[str, Any]:
+    meta = read_metadata(path).get("vamppi", {})
+    try:
+        return json.loads(meta.get("config", "{}")) or {}
+    except json.JSONDecodeError:
+        return {}
+
+
+def recover(path: str | Path, out: str | Path) -> dict[str, Any]:
+    """Rewrite a (crashed) recording into a complete file: every schema, channel,
+    metadata and message of its complete chunks, then a fresh summary."""
+    path, out = Path(path), Path(out)
+    if path.resolve() == out.resolve():
+        raise ValueError("recover writes a new file; give an output path")
+    ids: dict[int, int] = {}
+    topics: dict[int, str] = {}
+    counts: collections.Counter[str] = collections.Counter()
+    first = last = None
+    with open(path, "rb") as f, open(out, "wb") as g:
+        w = Writer(g, chunk_size=CHUNK_SIZE, compression=CompressionType.ZSTD)
+        w.start(profile=PROFILE, library=f"vamppi {package_versions()['vamppi']} (recovered)")
+        new_schema: dict[int, int] = {}
+        for rec in _stream_records(f):
+            if isinstance(rec, Schema):
+                new_schema[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
+            elif isinstance(rec, Channel):
+                ids[rec.id] = w.register_channel(rec.topic, rec.message_encoding,
+                                                 new_schema.get(rec.schema_id, 0),
+                                                 dict(rec.metadata))
+                topics[rec.id] = rec.topic
+            elif isinstance(rec, Metadata):
+                w.add_metadata(rec.name, dict(rec.metadata))
+            elif isinstance(rec, Message) and rec.channel_id in ids:
+                w.add_message(ids[rec.channel_id], rec.log_time, rec.data, rec.publish_time,
+                              rec.sequence)
+                counts[topics[rec.channel_id]] += 1
+                first = rec.log_time if first is None else min(first, rec.log_time)
+                last = rec.log_time if last is None else max(last, rec.log_time)
+        w.finish()
+    return {"input": str(path), "output": str(out), "input_bytes": os.path.getsize(path),
+            "messages": sum(counts.values()), "per_key": dict(counts),
+            "first_log_time_ns": first, "last_log_time_ns": last}

@@ -1,0 +1,275 @@
+"""Timing of a pipeline run: the chain follower shared by `vamppi bench pipeline` (live,
+on the bus) and `vamppi timing` (from a recording), and the recording's analysis.
+
+End-to-end latency follows one chain through the input references in the
+headers: a command's header names the map it was planned on, the map's the
+depth frame it fused; the plant's state names the command it applies. Depth
+capture to command applied = the first state applying a command (its publish
+wall time) minus the publish wall time of the depth frame at the chain's root.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from common.bus import topic_key
+from common.messages import DecodeError, peek
+from deploy.recording import PublisherSeq, iter_messages, read_metadata
+
+
+def stats_ms(times: list[float]) -> dict[str, float]:
+    """Median, p95, p99 in ms of times in seconds."""
+    t = np.asarray(times) * 1e3
+    return {"median_ms": round(float(np.median(t)), 3),
+            "p95_ms": round(float(np.percentile(t, 95)), 3),
+            "p99_ms": round(float(np.percentile(t, 99)), 3), "reps": len(t)}
+
+
+class ChainLog:
+    """Headers of the pipeline's depth, map, cmd and state messages as they pass
+    (bus-level subscriber callbacks; only the msgpack header is read)."""
+
+    def __init__(self, vehicle: str):
+        self.keys = {t: topic_key(vehicle, t) for t in ("depth", "map", "cmd", "state")}
+        self.lock = threading.Lock()
+        self.depth: dict[int, float] = {}                 # seq -> publish wall time
+        self.map: dict[int, tuple[float, int]] = {}       # seq -> (wall, depth seq)
+        self.cmd: dict[int, tuple[float, int]] = {}       # seq -> (wall, map seq)
+        self.applied: dict[int, float] = {}               # cmd seq -> first state applying it
+        self.states = 0
+        self.stale = 0
+
+    def callbacks(self) -> dict[str, Any]:
+        return {key: (lambda sample, t=topic: self.on(t, sample.payload.to_bytes()))
+                for topic, key in self.keys.items()}
+
+    def _ref(self, h: dict[str, Any], topic: str) -> int | None:
+        for key, seq, _ in h.get("inputs", []):
+            if key == self.keys[topic]:
+                return int(seq)
+        return None
+
+    def on(self, topic: str, payload: bytes) -> None:
+        try:
+            h = msgpack.unpackb(payload, raw=False)["header"]
+        except Exception:          # malformed traffic is the codec tests' business
+            return
+        wall = float(h["wall_time"])
+        with self.lock:
+            if topic == "depth":
+                self.depth[int(h["seq"])] = wall
+            elif topic == "map":
+                self.map[int(h["seq"])] = (wall, self._ref(h, "depth"))
+            elif topic == "cmd":
+                self.cmd[int(h["seq"])] = (wall, self._ref(h, "map"))
+            else:
+                self.states += 1
+                seq = self._ref(h, "cmd")
+                if seq is None:
+                    self.stale += 1
+                elif seq not in self.applied:
+                    self.applied[seq] = wall
+
+    def summary(self) -> dict[str, Any]:
+        with self.lock:
+            chains = []
+            for seq, applied in self.applied.items():
+                c_wall, m_seq = self.cmd.get(seq, (None, None))
+                m_wall, d_seq = self.map.get(m_seq, (None, None))
+                d_wall = self.depth.get(d_seq)
+                if None not in (c_wall, m_wall, d_wall):
+                    chains.append((d_wall, m_wall, c_wall, applied))
+            cmd_walls = sorted(w for w, _ in self.cmd.values())
+        out: dict[str, Any] = {"commands": len(cmd_walls), "chains": len(chains),
+                               "states": self.states, "stale_states": self.stale}
+        if len(cmd_walls) > 1:
+            gaps = np.diff(cmd_walls)
+            out["command_rate_hz"] = round((len(cmd_walls) - 1)
+                                           / (cmd_walls[-1] - cmd_walls[0]), 2)
+            out["command_interval"] = stats_ms(list(gaps))
+        if chains:
+            a = np.asarray(chains)
+            out["end_to_end"] = stats_ms(list(a[:, 3] - a[:, 0]))
+            out["depth_to_map"] = stats_ms(list(a[:, 1] - a[:, 0]))
+            out["map_to_cmd"] = stats_ms(list(a[:, 2] - a[:, 1]))
+            out["cmd_to_applied"] = stats_ms(list(a[:, 3] - a[:, 2]))
+        return out
+
+
+
+
+def _ms(values: list[float]) -> dict[str, float]:
+    """Mean, std, p50, p95, p99, max in ms of values in seconds (empty: {})."""
+    if not values:
+        return {}
+    a = np.asarray(values) * 1e3
+    return {"mean_ms": round(float(a.mean()), 3), "std_ms": round(float(a.std()), 3),
+            "p50_ms": round(float(np.median(a)), 3),
+            "p95_ms": round(float(np.percentile(a, 95)), 3),
+            "p99_ms": round(float(np.percentile(a, 99)), 3), "max_ms": round(float(a.max()), 3)}
+
+
+def analyse(path: str | Path) -> dict[str, Any]:
+    """Per-key rate, jitter, sizes, seq gaps and transport latency; the depth -> command
+    applied chain; the planner's solve times. One pass over the recording."""
+    meta = read_metadata(path).get("vamppi", {})
+    vehicle = meta.get("vehicle") or "ego"
+    chain = ChainLog(vehicle)
+    chain_topics = {key: topic for topic, key in chain.keys.items()}
+    per: dict[str, dict[str, Any]] = {}
+    solve_ms: list[float] = []
+    stats_key = topic_key(vehicle, "stats")
+    undecodable = 0
+    for m in iter_messages(path):
+        k = per.setdefault(m.key, {"log": [], "latency": [], "sizes": [], "seqs": {}})
+        k["log"].append(m.log_time_ns)
+        k["sizes"].append(len(m.data))
+        try:
+            _, header = peek(m.data)
+        except DecodeError:
+            undecodable += 1
+            continue
+        k["latency"].append((m.log_time_ns - int(header.wall_time * 1e9)) / 1e9)
+        k["seqs"].setdefault(header.source, PublisherSeq()).see(header.seq)
+        if m.key in chain_topics:
+            chain.on(chain_topics[m.key], m.data)
+        if m.key == stats_key:
+            solve_ms.append(float(msgpack.unpackb(m.data, raw=False)["solve_ms"]))
+    topics = []
+    for key, k in sorted(per.items()):
+        log_s = np.asarray(k["log"], np.float64) / 1e9
+        period = np.diff(log_s)
+        row = {"key": key, "messages": len(log_s),
+               "rate_hz": round((len(log_s) - 1) / (log_s[-1] - log_s[0]), 3)
+               if len(log_s) > 1 and log_s[-1] > log_s[0] else None,
+               "period": _ms(list(period)),
+               "bytes_mean": round(float(np.mean(k["sizes"])), 1),
+               "bytes_max": int(np.max(k["sizes"])),
+               "publishers": len(k["seqs"]),
+               "seq_missing": sum(p.missing for p in k["seqs"].values()),
+               "seq_backwards": sum(p.backwards for p in k["seqs"].values()),
+               "transport": _ms(k["latency"])}
+        topics.append(row)
+    out: dict[str, Any] = {"recording": str(path), "vehicle": vehicle,
+                           "clock": meta.get("clock", ""), "scenario": meta.get("scenario", ""),
+                           "git_commit": meta.get("git_commit", ""),
+                           "undecodable": undecodable, "topics": topics,
+                           "chain": chain.summary()}
+    if solve_ms:
+        out["solve_ms"] = {**_ms([s / 1e3 for s in solve_ms]), "count": len(solve_ms)}
+    out["_series"] = {"solve_ms": solve_ms, "chains": _chain_rows(chain),
+                      "latency": {key: k["latency"] for key, k in per.items()},
+                      "period": {key: list(np.diff(np.asarray(k["log"]) / 1e9))
+                                 for key, k in per.items()}}
+    return out
+
+
+def _chain_rows(chain: ChainLog) -> list[tuple[float, float, float, float]]:
+    rows = []
+    for seq, applied in chain.applied.items():
+        c_wall, m_seq = chain.cmd.get(seq, (None, None))
+        m_wall, d_seq = chain.map.get(m_seq, (None, None))
+        d_wall = chain.depth.get(d_seq)
+        if None not in (c_wall, m_wall, d_wall):
+            rows.append((d_wall, m_wall, c_wall, applied))
+    return rows
+
+
+def table(result: dict[str, Any]) -> str:
+    """The analysis as a Markdown table plus the chain and solve-time lines."""
+    def f(v: Any) -> str:
+        return "-" if v is None else f"{v:g}" if isinstance(v, float) else str(v)
+    lines = [f"timing of {result['recording']} ({result['clock'] or 'clock ?'}, "
+             f"{result['scenario'] or 'scenario ?'}, commit {result['git_commit'] or '?'})", "",
+             "| key | msgs | rate Hz | period p50 ms | jitter (std) ms | bytes mean | bytes max "
+             "| seq gaps | transport p50 ms | p95 ms | p99 ms |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in result["topics"]:
+        p, t = r["period"], r["transport"]
+        lines.append(f"| {r['key']} | {r['messages']} | {f(r['rate_hz'])} | "
+                     f"{f(p.get('p50_ms'))} | {f(p.get('std_ms'))} | {r['bytes_mean']:.0f} | "
+                     f"{r['bytes_max']} | {r['seq_missing']} | {f(t.get('p50_ms'))} | "
+                     f"{f(t.get('p95_ms'))} | {f(t.get('p99_ms'))} |")
+    c = result["chain"]
+    lines += ["", f"chains depth -> map -> cmd -> applied: {c['chains']} "
+              f"(commands {c['commands']}, states {c['states']}, "
+              f"states without a fresh command {c['stale_states']})"]
+    if "command_rate_hz" in c:
+        lines.append(f"command rate {c['command_rate_hz']} Hz")
+    for stage in ("end_to_end", "depth_to_map", "map_to_cmd", "cmd_to_applied"):
+        if stage in c:
+            s = c[stage]
+            lines.append(f"{stage:15s} p50 {s['median_ms']:9.3f} ms   p95 {s['p95_ms']:9.3f} ms"
+                         f"   p99 {s['p99_ms']:9.3f} ms   n {s['reps']}")
+    if "solve_ms" in result:
+        s = result["solve_ms"]
+        lines.append(f"planner solve   p50 {s['p50_ms']:9.3f} ms   p95 {s['p95_ms']:9.3f} ms"
+                     f"   max {s['max_ms']:9.3f} ms   n {s['count']}")
+    return "\n".join(lines)
+
+
+def plots(result: dict[str, Any], out_dir: str | Path) -> list[Path]:
+    """Solve-time histogram (the paper's figure), chain latency stages, transport
+    latency and inter-arrival per key; PNGs in `out_dir`."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    s = result["_series"]
+    written = []
+    if s["solve_ms"]:
+        fig, ax = plt.subplots(figsize=(6, 3.5))
+        ax.hist(s["solve_ms"], bins=40, color="tab:blue")
+        ax.set_xlabel("planner solve time (ms)")
+        ax.set_ylabel("ticks")
+        ax.set_title("solve-time distribution")
+        written.append(out / "solve_time.png")
+        fig.tight_layout()
+        fig.savefig(written[-1], dpi=120)
+        plt.close(fig)
+    if s["chains"]:
+        a = np.asarray(s["chains"]) * 1e3
+        fig, ax = plt.subplots(figsize=(6, 3.5))
+        stages = {"depth -> map": a[:, 1] - a[:, 0], "map -> cmd": a[:, 2] - a[:, 1],
+                  "cmd -> applied": a[:, 3] - a[:, 2], "end to end": a[:, 3] - a[:, 0]}
+        ax.boxplot(list(stages.values()), showfliers=True)
+        ax.set_xticks(range(1, len(stages) + 1), list(stages))
+        ax.set_ylabel("ms")
+        ax.set_title("chain latency, depth capture to command applied")
+        written.append(out / "chain_latency.png")
+        fig.tight_layout()
+        fig.savefig(written[-1], dpi=120)
+        plt.close(fig)
+    keys = sorted(k for k, v in s["latency"].items() if v)
+    if keys:
+        fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
+        for key in keys:
+            short = key.split("/")[-1]
+            lat = np.sort(np.asarray(s["latency"][key]) * 1e3)
+            axes[0].plot(lat, np.linspace(0, 1, len(lat)), label=short)
+            per = np.asarray(s["period"][key]) * 1e3
+            if len(per):
+                axes[1].hist(per, bins=50, histtype="step", label=short)
+        axes[0].set_xscale("log")
+        axes[0].set_xlabel("transport latency, receive - publish (ms)")
+        axes[0].set_ylabel("fraction")
+        axes[1].set_xlabel("inter-arrival (ms)")
+        axes[1].set_yscale("log")
+        for ax in axes:
+            ax.legend(fontsize=7)
+        written.append(out / "topics.png")
+        fig.tight_layout()
+        fig.savefig(written[-1], dpi=120)
+        plt.close(fig)
+    return written
+
+
+def public(result: dict[str, Any]) -> dict[str, Any]:
+    """The analysis without its raw series (what --json prints)."""
+    return {k: v for k, v in result.items() if not k.startswith("_")}
