@@ -333,12 +333,105 @@ def bench_pipeline(cfg: Config, overrides: list[str], samples: list[int],
                          "overrides": overrides}, "cases": cases}
 
 
+def synthetic_session(cfg: Config, path: str, seconds: float, map_hz: float) -> dict[str, Any]:
+    """A recording shaped like the pipeline's traffic: states at the plant rate, depth
+    frames, maps (two 400 x 400 float32 layers) and commands at `map_hz`."""
+    from common.bus import topic_key
+    from common.messages import Cmd, Depth, Header, Map, State, encode
+    from deploy.recording import RecordingWriter, recording_metadata
+    v, n = cfg.episode.vehicle, cfg.mapper.size_cells
+    rng = np.random.default_rng(0)
+    mean = rng.normal(size=(n, n)).astype(np.float32)
+    var = rng.uniform(0, 3, (n, n)).astype(np.float32)
+    depth = rng.uniform(0, 25, (cfg.sensor.height_px, cfg.sensor.width_px)).astype(np.float32)
+    w = RecordingWriter(path, recording_metadata(cfg.to_dict(), f"vamppi/{v}/**"))
+    t0 = 1_700_000_000.0
+    rate = float(cfg.plant.rate_hz)
+    every = max(1, int(round(rate / map_hz)))
+    for i in range(int(seconds * rate)):
+        t = t0 + i / rate
+        h = Header(i, i / rate, t, "plant/0")
+        w.add(topic_key(v, "state"), encode(State(h, np.zeros(6), 0.0, np.zeros(2), i, "")),
+              int(t * 1e9))
+        if i % every == 0:
+            j = i // every
+            hj = Header(j, i / rate, t, "x/0")
+            w.add(topic_key(v, "depth"), encode(Depth(
+                hj, depth, np.ones(4), np.zeros(3), np.eye(3), np.zeros(4), 25.0)),
+                int(t * 1e9) + 1000)
+            w.add(topic_key(v, "map"), encode(Map(hj, mean, var, np.zeros(2), 0.2)),
+                  int(t * 1e9) + 2000)
+            w.add(topic_key(v, "cmd"), encode(Cmd(hj, i / rate, 0.1,
+                                                  np.zeros((cfg.planner.horizon, 2), np.float32))),
+                  int(t * 1e9) + 3000)
+    return w.close()
+
+
+def bench_record(cfg: Config, duration_s: float, rates: list[float],
+                 map_hz: float = 10.0) -> dict[str, Any]:
+    """The recorder on a router (as `vamppi up --record` runs it) while another process
+    (`vamppi replay`) publishes pipeline-shaped traffic at each time scale in `rates`
+    (1 = real time; 0 = as fast as the bus goes): delivered vs published, seq gaps,
+    the recorder's largest backlog, throughput."""
+    import subprocess
+    import sys
+    import tempfile
+    from pathlib import Path
+
+    from common.bus import open_session
+    from deploy.launch import free_port, router_config
+    from deploy.recording import Recorder, iter_messages, recording_metadata
+    cases = []
+    with tempfile.TemporaryDirectory() as tmp:
+        src = str(Path(tmp) / "synthetic.mcap")
+        made = synthetic_session(cfg, src, duration_s, map_hz)
+        for rate in rates:
+            port = free_port()
+            out = str(Path(tmp) / f"recorded-{rate}.mcap")
+            keys = f"vamppi/{cfg.episode.vehicle}/**"
+            with open_session(router_config(port)) as session:
+                rec = Recorder(session, keys, out, recording_metadata(cfg.to_dict(), keys))
+                t0 = time.monotonic()
+                r = subprocess.run([sys.executable, "-m", "deploy.cli", "replay", src,
+                                    "--rate", str(rate), "--connect", f"tcp/127.0.0.1:{port}",
+                                    "--set", "bus.mode=\"client\""],
+                                   capture_output=True, text=True, timeout=duration_s * 10 + 120)
+                if r.returncode != 0:
+                    raise RuntimeError(f"replay failed: {r.stderr[-1000:]}")
+                wall = time.monotonic() - t0
+                stats = rec.stop(drain_s=1.0)
+            got = sum(1 for _ in iter_messages(out))
+            published = json.loads(r.stdout.strip().splitlines()[-1])["published"]
+            cases.append({"rate": rate, "published": published, "recorded": got,
+                          "seq_missing": stats["missing"], "max_backlog": stats["max_backlog"],
+                          "wall_s": round(wall, 2),
+                          "mb_per_s": round(made["bytes"] / 2 ** 20 / wall, 1),
+                          "file_mb": round(Path(out).stat().st_size / 2 ** 20, 1),
+                          "payload_mb": round(made["bytes"] / 2 ** 20, 1)})
+    return {"benchmark": "record", **device_info(),
+            "settings": {"seconds": duration_s, "map_hz": map_hz,
+                         "state_hz": cfg.plant.rate_hz, "messages": made["messages"]},
+            "cases": cases}
+
+
 def table(result: dict[str, Any]) -> str:
     """A markdown table of any benchmark's result."""
     kind = result["benchmark"]
     if kind == "planner":
         return planner_table(result)
     head = f"{kind}: {result['device']} ({result['backend']}, jax {result['jax']})"
+    if kind == "record":
+        st = result["settings"]
+        lines = [f"{head}; {st['seconds']} s of traffic: states {st['state_hz']} Hz, depth, "
+                 f"maps and commands {st['map_hz']} Hz ({st['messages']} messages)", "",
+                 "| time scale | published | recorded | seq gaps | max backlog | wall s "
+                 "| MB/s | file MB (of payload MB) |", "|---|---|---|---|---|---|---|---|"]
+        for c in result["cases"]:
+            lines.append(f"| {c['rate'] or 'as fast as possible'} | {c['published']} | "
+                         f"{c['recorded']} | {c['seq_missing']} | {c['max_backlog']} | "
+                         f"{c['wall_s']} | {c['mb_per_s']} | {c['file_mb']} "
+                         f"({c['payload_mb']}) |")
+        return "\n".join(lines)
     if kind == "peer":
         ours = {c["samples"]: c["median_ms"] for c in result["cases"]
                 if c["implementation"] == "vamppi"}
@@ -389,6 +482,8 @@ def main(cfg: Config, what: str, samples: list[int], controllers: list[str], rep
     if what == "pipeline":
         result = bench_pipeline(cfg, list(overrides), samples, controllers, duration_s,
                                 config_path, record)
+    elif what == "record":
+        result = bench_record(cfg, duration_s, [1.0, 0.0])
     elif what == "peer":
         from deploy.peer import bench_peer
         result = bench_peer(cfg, samples, reps)

@@ -238,11 +238,7 @@ def cmd_recover(args: argparse.Namespace, cfg: Config) -> int:
         print(f"vamppi recover: {src} is complete (has its summary); nothing to do "
               "(--force rewrites it anyway)", file=sys.stderr)
         return 0
-    try:
-        report = recover(src, out)
-    except (OSError, ValueError) as exc:
-        print(f"vamppi recover: {exc}", file=sys.stderr)
-        return 2
+    report = recover(src, out)
     print(json.dumps(report), flush=True)
     return 0
 
@@ -297,11 +293,7 @@ def cmd_timing(args: argparse.Namespace, cfg: Config) -> int:
 
 def cmd_export_foxglove(args: argparse.Namespace, cfg: Config) -> int:
     from deploy.foxglove import export
-    try:
-        report = export(args.input, args.output, args.map_stride, args.rollouts)
-    except OSError as exc:
-        print(f"vamppi export-foxglove: {exc}", file=sys.stderr)
-        return 2
+    report = export(args.input, args.output, args.map_stride, args.rollouts)
     print(json.dumps(report), flush=True)
     return 0
 
@@ -401,12 +393,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_scenario)
 
     p = sub.add_parser("bench", help="speed benchmarks (a table, or JSON with --json)")
-    p.add_argument("what", choices=("planner", "mapper", "bus", "pipeline", "peer"))
+    p.add_argument("what", choices=("planner", "mapper", "bus", "pipeline", "peer", "record"))
     p.add_argument("--samples", dest="samples_list",
                    help="sample counts K (planner, peer: 400,800,1000,4000; pipeline: 800)")
     p.add_argument("--controllers", help="planner: va,deterministic; pipeline: va")
     p.add_argument("--duration", type=float, default=30.0,
-                   help="pipeline: wall seconds measured after the episode starts")
+                   help="pipeline: wall seconds measured after the episode starts; "
+                        "record: seconds of traffic")
     p.add_argument("--scenario", help="pipeline: episode.scenario (default: the config's)")
     p.add_argument("--record", metavar="FILE.mcap",
                    help="pipeline: record each case (vamppi timing analyses the same run)")
@@ -442,7 +435,12 @@ def main(argv: list[str] | None = None) -> Any:
     except ConfigError as exc:
         print(f"vamppi: bad configuration: {exc}", file=sys.stderr)
         return 2
-    return args.func(args, cfg)
+    from deploy.recording import RecordingError
+    try:
+        return args.func(args, cfg)
+    except (RecordingError, FileNotFoundError, IsADirectoryError) as exc:
+        print(f"vamppi {args.command}: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -270,6 +270,10 @@ class Recorder:
 
 
 # ----------------------------------------------------------------------------- reading
+class RecordingError(ValueError):
+    """A file that is not a readable MCAP recording at all."""
+
+
 @dataclass(frozen=True)
 class Recorded:
     key: str
@@ -283,14 +287,21 @@ def _stream_records(f: IO[bytes]) -> Iterator[Any]:
     """Every complete record, CRC-checked; stops quietly at a truncated tail."""
     reader = StreamReader(f, skip_magic=False, emit_chunks=False, validate_crcs=True)
     it = reader.records
+    first = True
     while True:
         try:
             rec = next(it)
         except StopIteration:
             return
         except Exception as exc:       # truncated record or chunk: the file ends here
-            log.info("recording ends in an incomplete record (%s: %s)", type(exc).__name__, exc)
+            if first:
+                name = getattr(f, "name", "the file")
+                raise RecordingError(f"{name}: not an MCAP recording ({type(exc).__name__}: "
+                                     f"{exc})") from None
+            log.warning("recording ends in an incomplete record (%s: %s); read up to there",
+                        type(exc).__name__, exc)
             return
+        first = False
         yield rec
 
 
@@ -327,6 +338,15 @@ def iter_messages(path: str | Path, keys: set[str] | None = None,
                     yield Recorded(key, rec.log_time, rec.publish_time, rec.sequence, rec.data)
 
 
+def recording_keys(path: str | Path) -> list[str]:
+    """The keys (channel topics) of a recording."""
+    with open(path, "rb") as f:
+        if is_complete(path):
+            summary = make_reader(f).get_summary()
+            return sorted({c.topic for c in summary.channels.values()})
+        return sorted({r.topic for r in _stream_records(f) if isinstance(r, Channel)})
+
+
 def read_metadata(path: str | Path) -> dict[str, dict[str, str]]:
     """Every metadata record by name (a crashed file: those before its truncated tail)."""
     with open(path, "rb") as f:
@@ -353,27 +373,33 @@ def recover(path: str | Path, out: str | Path) -> dict[str, Any]:
     topics: dict[int, str] = {}
     counts: collections.Counter[str] = collections.Counter()
     first = last = None
-    with open(path, "rb") as f, open(out, "wb") as g:
-        w = Writer(g, chunk_size=CHUNK_SIZE, compression=CompressionType.ZSTD)
-        w.start(profile=PROFILE, library=f"vamppi {package_versions()['vamppi']} (recovered)")
-        new_schema: dict[int, int] = {}
-        for rec in _stream_records(f):
-            if isinstance(rec, Schema):
-                new_schema[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
-            elif isinstance(rec, Channel):
-                ids[rec.id] = w.register_channel(rec.topic, rec.message_encoding,
-                                                 new_schema.get(rec.schema_id, 0),
-                                                 dict(rec.metadata))
-                topics[rec.id] = rec.topic
-            elif isinstance(rec, Metadata):
-                w.add_metadata(rec.name, dict(rec.metadata))
-            elif isinstance(rec, Message) and rec.channel_id in ids:
-                w.add_message(ids[rec.channel_id], rec.log_time, rec.data, rec.publish_time,
-                              rec.sequence)
-                counts[topics[rec.channel_id]] += 1
-                first = rec.log_time if first is None else min(first, rec.log_time)
-                last = rec.log_time if last is None else max(last, rec.log_time)
-        w.finish()
+    part = out.with_name(out.name + ".part")
+    try:
+        with open(path, "rb") as f, open(part, "wb") as g:
+            w = Writer(g, chunk_size=CHUNK_SIZE, compression=CompressionType.ZSTD)
+            w.start(profile=PROFILE, library=f"vamppi {package_versions()['vamppi']} (recovered)")
+            new_schema: dict[int, int] = {}
+            for rec in _stream_records(f):
+                if isinstance(rec, Schema):
+                    new_schema[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
+                elif isinstance(rec, Channel):
+                    ids[rec.id] = w.register_channel(rec.topic, rec.message_encoding,
+                                                     new_schema.get(rec.schema_id, 0),
+                                                     dict(rec.metadata))
+                    topics[rec.id] = rec.topic
+                elif isinstance(rec, Metadata):
+                    w.add_metadata(rec.name, dict(rec.metadata))
+                elif isinstance(rec, Message) and rec.channel_id in ids:
+                    w.add_message(ids[rec.channel_id], rec.log_time, rec.data, rec.publish_time,
+                                  rec.sequence)
+                    counts[topics[rec.channel_id]] += 1
+                    first = rec.log_time if first is None else min(first, rec.log_time)
+                    last = rec.log_time if last is None else max(last, rec.log_time)
+            w.finish()
+    except BaseException:
+        part.unlink(missing_ok=True)
+        raise
+    part.replace(out)
     return {"input": str(path), "output": str(out), "input_bytes": os.path.getsize(path),
             "messages": sum(counts.values()), "per_key": dict(counts),
             "first_log_time_ns": first, "last_log_time_ns": last}

@@ -32,7 +32,7 @@ import zenoh
 from common.bus import PREFIX, TOPICS
 from common.config import Config, config_toml, load_config
 from common.messages import DecodeError, Message, decode
-from deploy.recording import Recorded, iter_messages, recorded_config
+from deploy.recording import Recorded, iter_messages, recorded_config, recording_keys
 
 log = logging.getLogger(__name__)
 
@@ -61,14 +61,23 @@ def key_matcher(topics: Iterable[str] | None):
 # ----------------------------------------------------------------------------- plain replay
 def replay(session: zenoh.Session, path: str | Path, rate: float = 1.0,
            topics: Iterable[str] | None = None, loop: bool = False,
-           start_offset_s: float = 0.0, stop: threading.Event | None = None) -> dict[str, Any]:
+           start_offset_s: float = 0.0, stop: threading.Event | None = None,
+           wait_matching_s: float = 1.0) -> dict[str, Any]:
     """Publish the recording onto `session`; returns counts. `rate` scales time (2: twice
-    as fast; 0: no waiting); `start_offset_s` skips the first seconds."""
+    as fast; 0: no waiting); `start_offset_s` skips the first seconds. Every key's
+    publisher is declared first; up to `wait_matching_s` is given for subscribers
+    already on the bus to be matched, so that the first messages reach them."""
     if rate < 0:
         raise ValueError("rate must be >= 0")
     stop = stop or threading.Event()
     wanted = key_matcher(topics)
-    pubs: dict[str, Any] = {}
+    pubs = {key: session.declare_publisher(key, reliability=zenoh.Reliability.RELIABLE,
+                                           congestion_control=zenoh.CongestionControl.BLOCK)
+            for key in recording_keys(path) if wanted(key)}
+    deadline = time.monotonic() + wait_matching_s
+    while (time.monotonic() < deadline and not stop.is_set()
+           and not all(p.matching_status.matching for p in pubs.values())):
+        time.sleep(0.02)
     published, loops = 0, 0
     late_s = 0.0
     while not stop.is_set():
@@ -88,10 +97,6 @@ def replay(session: zenoh.Session, path: str | Path, rate: float = 1.0,
                 stop.wait(wait)
             else:
                 late_s = max(late_s, -wait)
-            if m.key not in pubs:
-                pubs[m.key] = session.declare_publisher(
-                    m.key, reliability=zenoh.Reliability.RELIABLE,
-                    congestion_control=zenoh.CongestionControl.BLOCK)
             pubs[m.key].put(m.data)
             published += 1
         loops += 1

@@ -249,17 +249,22 @@ def plots(result: dict[str, Any], out_dir: str | Path) -> list[Path]:
     keys = sorted(k for k, v in s["latency"].items() if v)
     if keys:
         fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
+        periods = np.concatenate([np.asarray(s["period"][k]) * 1e3 for k in keys])
+        periods = periods[periods > 0]
+        bins = (np.logspace(np.log10(periods.min()), np.log10(periods.max()), 60)
+                if len(periods) else 10)
         for key in keys:
             short = key.split("/")[-1]
             lat = np.sort(np.asarray(s["latency"][key]) * 1e3)
             axes[0].plot(lat, np.linspace(0, 1, len(lat)), label=short)
             per = np.asarray(s["period"][key]) * 1e3
             if len(per):
-                axes[1].hist(per, bins=50, histtype="step", label=short)
+                axes[1].hist(per[per > 0], bins=bins, histtype="step", label=short)
         axes[0].set_xscale("log")
         axes[0].set_xlabel("transport latency, receive - publish (ms)")
         axes[0].set_ylabel("fraction")
         axes[1].set_xlabel("inter-arrival (ms)")
+        axes[1].set_xscale("log")
         axes[1].set_yscale("log")
         for ax in axes:
             ax.legend(fontsize=7)

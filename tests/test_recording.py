@@ -27,6 +27,7 @@ from common.messages import (
 )
 from deploy.foxglove import export
 from deploy.recording import (
+    RecordingError,
     RecordingWriter,
     is_complete,
     iter_messages,
@@ -53,6 +54,14 @@ def a_map(seq, rng, n=400):
                mean=rng.normal(size=(n, n)).astype("<f4"),
                variance=rng.uniform(0, 3, (n, n)).astype("<f4"),
                origin=np.zeros(2), resolution=0.2)
+
+
+def wait_for_subscriber(*publishers, timeout_s=30.0):
+    """Until the recorder's subscription has reached every publisher (Zenoh matching)."""
+    deadline = time.monotonic() + timeout_s
+    while not all(p.matching_status.matching for p in publishers):
+        assert time.monotonic() < deadline, "no subscriber matched"
+        time.sleep(0.05)
 
 
 def client(endpoint):
@@ -140,6 +149,20 @@ def test_a_truncated_recording_reads_and_recovers_up_to_its_last_complete_chunk(
         assert is_complete(tmp_path / "rec.mcap")
 
 
+def test_a_file_that_is_not_a_recording_is_a_clear_error(tmp_path):
+    bad = tmp_path / "bad.mcap"
+    for content in (b"", b"garbage\n", b"\x89MCAP0\r"):
+        bad.write_bytes(content)
+        with pytest.raises(RecordingError, match="not an MCAP recording"):
+            list(iter_messages(bad))
+        with pytest.raises(RecordingError):
+            recover(bad, tmp_path / "out.mcap")
+    r = subprocess.run([sys.executable, "-m", "deploy.cli", "timing", str(bad)],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "not an MCAP recording" in r.stderr
+    assert "Traceback" not in r.stderr
+
+
 def test_compare_reports_the_first_differing_field():
     a = state(3)
     assert compare_messages(a, state(3)) is None        # headers (wall time) are not compared
@@ -166,7 +189,7 @@ def test_recorder_killed_mid_stream_loses_at_most_the_last_second(router, tmp_pa
         with open_session(client(router)) as s:
             ps = s.declare_publisher(topic_key("v", "state"))
             pm = s.declare_publisher(topic_key("v", "map"))
-            time.sleep(0.5)
+            wait_for_subscriber(ps, pm)
             sent_at = []
             t0 = time.monotonic()
             for i in range(200):                        # 4 s
