@@ -26,6 +26,7 @@ import numpy as np
 
 from common.config import Config
 from common.geometry import body_to_world, footprint_points, wrap_angle
+from services.planner.fastmath import FAST
 from services.plant.dynamics import S, accelerations
 
 TERMS = ("time", "dynamic", "surface", "dist", "acc", "orientation")
@@ -94,7 +95,7 @@ def footprint_world(c: CostParams, states: Any) -> tuple[Any, Any]:
     """World x, y of the footprint points along a rollout: (N+1, P) each."""
     fp = jnp.asarray(c.footprint, jnp.float32)
     return body_to_world(fp, states[:, S.X, None], states[:, S.Y, None], states[:, S.PSI, None],
-                         jnp)
+                         FAST)
 
 
 # the five cells read per footprint point: centre, +x, -x, +y, -y (row, col offsets)
@@ -227,7 +228,7 @@ def rollout_cost(c: CostParams, states: Any, xdots: Any, goal: Any, m: MapView,
                          + d[n] / jnp.maximum(V[n], vf))
 
     _, a_y, a_tot = accelerations(states[:-1], xdots, jnp)
-    beta = jnp.arctan2(states[:-1, S.v], jnp.maximum(states[:-1, S.V], 0.5))
+    beta = FAST.arctan2(states[:-1, S.v], jnp.maximum(states[:-1, S.V], 0.5))
     s_dyn = c.w_dynamic * jnp.sum(
         (jnp.abs(a_y) >= c.a_roll).astype(jnp.float32) + (a_tot >= c.a_max)
         + (jnp.abs(beta) >= c.beta_max) + (jnp.abs(states[:-1, S.v]) >= c.v_lat_max))

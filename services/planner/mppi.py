@@ -24,6 +24,7 @@ import jax.numpy as jnp
 
 from common.config import Config, VehicleConfig
 from services.planner.costs import OFFSETS, CostParams, MapView, footprint_cells, rollout_cost
+from services.planner.fastmath import FAST
 from services.planner.visibility import VisibilityParams, batched_decayed_variance
 from services.plant.dynamics import ControlLimits, clamp_control, derivatives, integrate
 
@@ -93,12 +94,13 @@ def advance(state: PlannerState, ticks: int) -> PlannerState:
 
 def rollout(params: PlannerParams, x0: jax.Array, u_prev: jax.Array, controls: jax.Array
             ) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """One sample: states (N+1, 6), applied controls (N, 2), dx/dt at each step (N, 6)."""
+    """One sample: states (N+1, 6), applied controls (N, 2), dx/dt at each step (N, 6).
+    The plant's own model, with vectorisable arctan/sin/cos (`fastmath.FAST`)."""
     def body(carry, v):
         x, u_last = carry
         u = clamp_control(v, u_last, params.limits, params.dt, jnp)
-        xdot = derivatives(params.vehicle, x, u, jnp)
-        x_next = integrate(params.vehicle, x, u, params.dt, params.substeps, jnp)
+        xdot = derivatives(params.vehicle, x, u, FAST)
+        x_next = integrate(params.vehicle, x, u, params.dt, params.substeps, FAST)
         return (x_next, u), (x_next, u, xdot)
 
     _, (xs, us, xdots) = jax.lax.scan(body, (x0, u_prev), controls)
