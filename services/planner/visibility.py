@@ -14,12 +14,13 @@ makes uncertainty shrink).
 
 Causality: the variance the trajectory meets at step i uses only the points
 seen from poses 0 .. i-1. A scan over the horizon carries a raw (unsplatted)
-count map: step i adds pose i-1's visible points, then reads the splatted
-count at step i's footprint cells (an 11 x 11 patch per footprint point, one
-small matmul for its five cells). Memory: one padded map per trajectory
-processed side by side (`va_chunk`), shared by the trajectories in turn and
-cleaned after each, never K full maps; plus the visible points of every pose
-(K x N x 600 indices: 77 MB at K = 800).
+count map: step i adds pose i-1's visible points, then copies the 11 x 11
+patch of raw counts around each of step i's footprint cells; one matmul after
+the horizon turns the patches into splatted counts at the five cells. Memory:
+one padded map per trajectory processed side by side (`va_chunk`), shared by
+the trajectories in turn and cleaned after each, never K full maps; the
+visible points of every pose (K x N x 600 indices: 77 MB at K = 800); the
+patches of one chunk (N x chunk x P x 121 floats: 2.3 MB).
 """
 
 from __future__ import annotations
@@ -138,42 +139,33 @@ def batched_decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, ori
     Step i sees the points of poses 0 .. i-1 only.
 
     The visible points of poses 0 .. N-1 are found at once, vectorised over K and
-    N. Then one raw count map (visible points per cell, unsplatted) goes through
-    the trajectories in turn (`lax.scan`; `chunk` trajectories side by side on an
-    accelerator): for each, a scan over the horizon adds pose i-1's points, reads
-    an 11 x 11 patch around each footprint cell and turns it into the splatted
-    counts at the five cells with one small matmul (splat on read). Adding
-    before reading lets XLA update the carried map in place. After a trajectory
-    its cells are set back to zero, so the map is never cleared whole.
+    N. Then raw count maps (visible points per cell, unsplatted; `chunk`
+    trajectories side by side) go through the trajectories in turn (`lax.scan`):
+    for each, a scan over the horizon adds pose i-1's points and copies out the
+    S x S patch of raw counts around each footprint cell (S = splat size + 2
+    max|offset|: a slice of S contiguous rows, not S*S single lookups). After the
+    horizon, one matmul turns every patch into the splatted counts at the five
+    cells (splat on read). Adding before reading lets XLA update the carried maps
+    in place; after the horizon the trajectories' cells are set back to zero, so
+    the maps are never cleared whole.
     """
     h, w = mean.shape
     k_traj = rows.shape[0]
     reach = max(max(abs(a), abs(b)) for a, b in offsets)
     pad = vp.splat_size // 2 + reach
-    wp = w + 2 * pad
+    size = 2 * pad + 1                                           # patch side S
+    hp, wp = h + 2 * pad, w + 2 * pad
     weights = jnp.asarray(offset_kernels(vp, offsets) * vp.count_value, jnp.float32)
-    o = jnp.arange(-pad, pad + 1)
-    patch = (o[:, None] * wp + o[None, :]).reshape(-1)           # (S*S,) flat offsets
 
     row, col, vis = visible_points(vp, mean, origin, resolution, states[:, :-1])  # (K, N, M)
-    flat = jnp.where(vis, (row + pad) * wp + col + pad, (h + 2 * pad) * wp)  # unseen: dropped
+    flat = jnp.where(vis, (row + pad) * wp + col + pad, hp * wp)   # unseen: dropped
+    # the patch around a footprint cell starts at the cell itself in padded coordinates
+    pr = jnp.clip(rows, reach, h - 1 - reach)
+    pc = jnp.clip(cols, reach, w - 1 - reach)
 
-    centre = (jnp.clip(rows, reach, h - 1 - reach) + pad) * wp + jnp.clip(cols, reach,
-                                                                           w - 1 - reach) + pad
     qr = jnp.concatenate([rows + dr for dr, _ in offsets], axis=-1)
     qc = jnp.concatenate([cols + dc for _, dc in offsets], axis=-1)
     prior = jnp.take(variance.reshape(-1), jnp.clip(qr, 0, h - 1) * w + jnp.clip(qc, 0, w - 1))
-
-    def counts_of(counts, fl, ce):
-        """One trajectory: fl (N, M) its poses' points, ce (N+1, P) its footprint cells."""
-        def step(c, inp):
-            f1, c1 = inp
-            c = c.at[f1].add(1.0, mode="drop")
-            return c, (c[c1[:, None] + patch] @ weights).T.reshape(-1)  # (5 P,) offset-major
-
-        counts, later = jax.lax.scan(step, counts, (fl, ce[1:]))
-        counts = counts.at[fl.reshape(-1)].set(0.0, mode="drop")       # clean for the next
-        return counts, jnp.concatenate([jnp.zeros_like(later[:1]), later])  # step 0: none seen
 
     chunk = vp.chunk or (8 if jax.default_backend() == "cpu" else 256)
     chunk = max(1, min(chunk, k_traj))
@@ -184,9 +176,30 @@ def batched_decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, ori
         a = jnp.concatenate([a, jnp.repeat(a[-1:], extra, axis=0)]) if extra else a
         return a.reshape((n_chunks, chunk) + a.shape[1:])
 
-    maps = jnp.zeros((chunk, (h + 2 * pad) * wp), jnp.float32)
-    _, c = jax.lax.scan(lambda m, a: jax.vmap(counts_of)(m, *a), maps,
-                        (split(flat), split(centre)))
+    def patches(m2, r, c):
+        """The S x S patches of one padded map (hp, wp) at corners (r, c), each (P,)."""
+        return jax.vmap(lambda r1, c1: jax.lax.dynamic_slice(m2, (r1, c1), (size, size)))(r, c)
+
+    def per_chunk(maps, inp):
+        """`chunk` trajectories: fl (chunk, N, M) their poses' points, r/c (chunk, N+1, P)."""
+        fl, r, c = inp
+
+        def step(m, x):
+            f1, r1, c1 = x                                       # (chunk, M), (chunk, P)
+            m = jax.vmap(lambda mm, ff: mm.at[ff].add(1.0, mode="drop"))(m, f1)
+            return m, jax.vmap(patches)(m.reshape(chunk, hp, wp), r1, c1)
+
+        maps, pts = jax.lax.scan(step, maps, (jnp.swapaxes(fl, 0, 1),
+                                              jnp.swapaxes(r[:, 1:], 0, 1),
+                                              jnp.swapaxes(c[:, 1:], 0, 1)))
+        n, _, n_pts = pts.shape[:3]
+        cnt = pts.reshape(n, chunk, n_pts, size * size) @ weights      # (N, chunk, P, 5)
+        cnt = jnp.transpose(cnt, (1, 0, 3, 2)).reshape(chunk, n, -1)   # offset-major
+        maps = jax.vmap(lambda mm, ff: mm.at[ff.reshape(-1)].set(0.0, mode="drop"))(maps, fl)
+        return maps, jnp.concatenate([jnp.zeros_like(cnt[:, :1]), cnt], axis=1)  # step 0
+
+    maps = jnp.zeros((chunk, hp * wp), jnp.float32)
+    _, c = jax.lax.scan(per_chunk, maps, (split(flat), split(pr), split(pc)))
     c = c.reshape((n_chunks * chunk,) + c.shape[2:])[:k_traj]
     return prior * jnp.exp(-vp.gamma * c)
 
