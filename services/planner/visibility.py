@@ -193,7 +193,9 @@ def batched_decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, ori
                                               jnp.swapaxes(r[:, 1:], 0, 1),
                                               jnp.swapaxes(c[:, 1:], 0, 1)))
         n, _, n_pts = pts.shape[:3]
-        cnt = pts.reshape(n, chunk, n_pts, size * size) @ weights      # (N, chunk, P, 5)
+        # HIGHEST: exact float32 everywhere (no TF32 on a GPU), and on XLA:CPU 1.7x faster
+        cnt = jnp.matmul(pts.reshape(n, chunk, n_pts, size * size), weights,
+                         precision=jax.lax.Precision.HIGHEST)           # (N, chunk, P, 5)
         cnt = jnp.transpose(cnt, (1, 0, 3, 2)).reshape(chunk, n, -1)   # offset-major
         maps = jax.vmap(lambda mm, ff: mm.at[ff.reshape(-1)].set(0.0, mode="drop"))(maps, fl)
         return maps, jnp.concatenate([jnp.zeros_like(cnt[:, :1]), cnt], axis=1)  # step 0
