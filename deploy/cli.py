@@ -213,15 +213,18 @@ def cmd_up(args: argparse.Namespace, cfg: Config) -> int:
 def cmd_record(args: argparse.Namespace, cfg: Config) -> int:
     """Record every sample under the key expression until Ctrl-C / SIGTERM / --duration."""
     from common.bus import PREFIX, open_session
-    from deploy.recording import Recorder, recording_metadata
+    from deploy.recording import Recorder, live_service_configs, recording_metadata
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     keys = args.keys or f"{PREFIX}/{cfg.episode.vehicle}/**"
     log = logging.getLogger(__name__)
     with open_session(cfg.bus) as session:
-        rec = Recorder(session, keys, args.output, recording_metadata(cfg.to_dict(), keys),
-                       flush_interval_s=args.flush_interval)
+        meta = recording_metadata(cfg.to_dict(), keys)
+        services = live_service_configs(session, cfg.episode.vehicle)
+        if services:
+            meta["services"] = services
+        rec = Recorder(session, keys, args.output, meta, flush_interval_s=args.flush_interval)
         log.info("recording %s to %s (Ctrl-C stops)", keys, args.output)
         stop.wait(args.duration)
         stats = rec.stop()

@@ -90,6 +90,20 @@ def recording_metadata(cfg_dict: dict[str, Any] | None, keys: str) -> dict[str, 
             "versions": package_versions()}
 
 
+def live_service_configs(session: Any, vehicle: str, timeout_s: float = 2.0
+                         ) -> dict[str, str]:
+    """The effective configuration (JSON) of every service instance on the bus, by
+    "<service>/<instance>" (their `config` queryables): what a standalone recorder
+    stores, since its own configuration need not be the services'."""
+    from common.bus import admin_key
+    out = {}
+    for reply in session.get(admin_key(vehicle, "*", "*", "config"), timeout=timeout_s):
+        if reply.ok is not None:
+            parts = str(reply.ok.key_expr).split("/")
+            out[f"{parts[3]}/{parts[4]}"] = reply.ok.payload.to_bytes().decode()
+    return out
+
+
 # ----------------------------------------------------------------------------- writer
 @dataclass
 class PublisherSeq:
@@ -355,10 +369,16 @@ def read_metadata(path: str | Path) -> dict[str, dict[str, str]]:
         return {r.name: dict(r.metadata) for r in _stream_records(f) if isinstance(r, Metadata)}
 
 
-def recorded_config(path: str | Path) -> dict[str, Any]:
-    meta = read_metadata(path).get("vamppi", {})
+def recorded_config(path: str | Path, service: str = "") -> dict[str, Any]:
+    """The configuration a recording was made with: that of a live `service`
+    instance if the recorder found one on the bus (metadata `services`), else the
+    recorder's own (`vamppi up --record`: the one every service was given)."""
+    meta = read_metadata(path)
+    live = meta.get("services", {})
+    texts = [v for k, v in sorted(live.items()) if k.split("/")[0] == service] + [
+        meta.get("vamppi", {}).get("config", "{}")]
     try:
-        return json.loads(meta.get("config", "{}")) or {}
+        return json.loads(texts[0]) or {}
     except json.JSONDecodeError:
         return {}
 

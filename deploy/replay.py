@@ -160,9 +160,11 @@ class LiveOutputs:
             return self._got.pop(k, None)
 
 
-def feed_config(path: str | Path, overrides: list[str]) -> tuple[Config, list[str]]:
-    """The recording's configuration, in lockstep, with `overrides` on top."""
-    recorded = recorded_config(path)
+def feed_config(path: str | Path, overrides: list[str], service: str = ""
+                ) -> tuple[Config, list[str]]:
+    """The recording's configuration (that of its `service` if recorded), in lockstep,
+    with `overrides` on top."""
+    recorded = recorded_config(path, service)
     if not recorded:
         raise ValueError(f"{path}: no configuration in the recording's metadata")
     base = load_config(overrides={f"{section}.{key}": value
@@ -183,7 +185,7 @@ def feed(path: str | Path, services: list[str], overrides: list[str], keep_going
     bad = sorted(set(services) - set(FEEDABLE))
     if bad or not services:
         raise ValueError(f"can feed {', '.join(FEEDABLE)}; got {', '.join(services) or '-'}")
-    cfg, run = feed_config(path, overrides)
+    cfg, run = feed_config(path, overrides, services[-1])
     config_file, run = run[0], run[1:]
     produced = {t for t, (owner, _) in TOPICS.items() if owner in services}
     inputs = {t for s in services for t in CONSUMES[s]} - produced

@@ -71,7 +71,9 @@ def client(endpoint):
 # ----------------------------------------------------------------------------- writer, reader
 def test_every_message_is_written_exactly_and_gaps_and_garbage_are_counted(tmp_path, rng):
     path = tmp_path / "w.mcap"
-    w = RecordingWriter(path, recording_metadata({"episode": {"scenario": "x"}}, "vamppi/v/**"))
+    meta = recording_metadata({"episode": {"scenario": "x"}}, "vamppi/v/**")
+    meta["services"] = {"planner/0": json.dumps({"episode": {"scenario": "y"}})}
+    w = RecordingWriter(path, meta)
     key_s, key_m = topic_key("v", "state"), topic_key("v", "map")
     sent = []
     seqs = [s for s in range(40) if s not in (7, 8, 30)]        # three lost upstream
@@ -106,6 +108,8 @@ def test_every_message_is_written_exactly_and_gaps_and_garbage_are_counted(tmp_p
     assert meta["vamppi"]["scenario"] == "x" and "numpy" in meta["versions"]
     assert json.loads(meta["vamppi.recording"]["missing"]) == 3
     assert recorded_config(path) == {"episode": {"scenario": "x"}}
+    assert recorded_config(path, "planner") == {"episode": {"scenario": "y"}}
+    assert recorded_config(path, "mapper") == {"episode": {"scenario": "x"}}
     assert meta["vamppi"]["git_commit"]                 # the commit, or "unknown" outside git
 
 
