@@ -75,15 +75,21 @@ class ChainLog:
                 elif seq not in self.applied:
                     self.applied[seq] = wall
 
-    def summary(self) -> dict[str, Any]:
+    def chains(self) -> list[tuple[float, float, float, float]]:
+        """Every complete chain: (depth, map, cmd, first state applying it) wall times."""
         with self.lock:
-            chains = []
+            out = []
             for seq, applied in self.applied.items():
                 c_wall, m_seq = self.cmd.get(seq, (None, None))
                 m_wall, d_seq = self.map.get(m_seq, (None, None))
                 d_wall = self.depth.get(d_seq)
                 if None not in (c_wall, m_wall, d_wall):
-                    chains.append((d_wall, m_wall, c_wall, applied))
+                    out.append((d_wall, m_wall, c_wall, applied))
+            return out
+
+    def summary(self) -> dict[str, Any]:
+        chains = self.chains()
+        with self.lock:
             cmd_walls = sorted(w for w, _ in self.cmd.values())
         out: dict[str, Any] = {"commands": len(cmd_walls), "chains": len(chains),
                                "states": self.states, "stale_states": self.stale}
@@ -162,22 +168,11 @@ def analyse(path: str | Path) -> dict[str, Any]:
                            "chain": chain.summary()}
     if solve_ms:
         out["solve_ms"] = {**_ms([s / 1e3 for s in solve_ms]), "count": len(solve_ms)}
-    out["_series"] = {"solve_ms": solve_ms, "chains": _chain_rows(chain),
+    out["_series"] = {"solve_ms": solve_ms, "chains": chain.chains(),
                       "latency": {key: k["latency"] for key, k in per.items()},
                       "period": {key: list(np.diff(np.asarray(k["log"]) / 1e9))
                                  for key, k in per.items()}}
     return out
-
-
-def _chain_rows(chain: ChainLog) -> list[tuple[float, float, float, float]]:
-    rows = []
-    for seq, applied in chain.applied.items():
-        c_wall, m_seq = chain.cmd.get(seq, (None, None))
-        m_wall, d_seq = chain.map.get(m_seq, (None, None))
-        d_wall = chain.depth.get(d_seq)
-        if None not in (c_wall, m_wall, d_wall):
-            rows.append((d_wall, m_wall, c_wall, applied))
-    return rows
 
 
 def table(result: dict[str, Any]) -> str:
