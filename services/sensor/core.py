@@ -117,10 +117,16 @@ def render_depth(p: CameraParams, heightmap: jax.Array, origin: jax.Array, resol
     # whole step is centimetres off; on a plane the final secant is exact
     found = ~jnp.isnan(t_hi)
     t_lo, t_hi = jnp.where(found, t_lo, 0.0), jnp.where(found, t_hi, 0.0)
-    for _ in range(REFINE_STEPS):
+
+    def bisect(_, bracket):
+        t_lo, t_hi = bracket
         mid = 0.5 * (t_lo + t_hi)
         above = height_gap(mid)[0] > 0.0
-        t_lo, t_hi = jnp.where(above, mid, t_lo), jnp.where(above, t_hi, mid)
+        return jnp.where(above, mid, t_lo), jnp.where(above, t_hi, mid)
+
+    # a loop, not unrolled: unrolled, XLA fused each step's lookups with every
+    # step before it and a frame took 4.5x longer than the whole march
+    t_lo, t_hi = jax.lax.fori_loop(0, REFINE_STEPS, bisect, (t_lo, t_hi))
     g_lo, g_hi = height_gap(t_lo)[0], height_gap(t_hi)[0]
     frac = jnp.clip(g_lo / jnp.maximum(g_lo - g_hi, 1e-12), 0.0, 1.0)
     hit = jnp.where(found, t_lo + frac * (t_hi - t_lo), jnp.nan)
