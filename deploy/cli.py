@@ -24,6 +24,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
+from common import compile_cache
 from common.config import Config, ConfigError, load_config
 
 
@@ -433,6 +434,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> Any:
     args = build_parser().parse_args(argv)
     _setup_logging(args.verbose)
+    compile_cache.enable()
     try:
         cfg = config_from_args(args)
     except ConfigError as exc:
