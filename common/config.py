@@ -117,6 +117,7 @@ class PlannerConfig:
     temperature: float = _rng(0.0, lo_open=True)
     noise_steer_rad: float = _rng(0.0)
     noise_force_n: float = _rng(0.0)
+    noise_correlation: float = _rng(0.0, 0.999)
     rollouts_published: int = _rng(0, 1000)
     footprint_points: int = _rng(2, 64)
     footprint_arrays: int = _rng(2, 16)

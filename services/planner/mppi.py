@@ -15,6 +15,7 @@ iteration, so a run is reproducible from its seed.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import lru_cache, partial
 from typing import Any, NamedTuple
@@ -39,6 +40,7 @@ class PlannerParams:
     iterations: int
     temperature: float                 # lambda
     noise_std: tuple[float, float]     # delta, f_xt
+    noise_correlation: float           # rho of the AR(1) noise along the horizon; 0 = white
     rollouts_published: int
     vehicle: VehicleConfig
     limits: ControlLimits
@@ -49,7 +51,7 @@ class PlannerParams:
     def from_config(cls, cfg: Config) -> PlannerParams:
         p = cfg.planner
         return cls(p.controller, p.samples, p.horizon, p.dt_s, p.substeps, p.iterations,
-                   p.temperature, (p.noise_steer_rad, p.noise_force_n),
+                   p.temperature, (p.noise_steer_rad, p.noise_force_n), p.noise_correlation,
                    min(p.rollouts_published, p.samples), cfg.vehicle,
                    ControlLimits.from_config(cfg.vehicle), CostParams.from_config(cfg),
                    VisibilityParams.from_config(cfg))
@@ -126,11 +128,32 @@ def query_variance(params: PlannerParams, m: MapView, states: jax.Array) -> jax.
                                     m.resolution, states, rows, cols, OFFSETS)
 
 
-def _iteration(params: PlannerParams, state: PlannerState, x0, u_prev, goal, m: MapView):
-    key, sub, mc = jax.random.split(state.key, 3)
+def sample_noise(params: PlannerParams, key: jax.Array) -> jax.Array:
+    """(K, N, 2) perturbations of the nominal, std `noise_std` at every step. With
+    rho = `noise_correlation` > 0 each sample is an AR(1) sequence along the horizon,
+    eps_i = rho eps_(i-1) + sqrt(1 - rho^2) eta_i (stationary: eps_0 = eta_0), so a
+    sample holds a steering or force offset for about 1 / (1 - rho) steps instead of
+    flipping sign every step against the steering-rate limit."""
     k, n = params.samples, params.horizon
     std = jnp.asarray(params.noise_std, jnp.float32)
-    eps = jax.random.normal(sub, (k, n, 2), jnp.float32) * std
+    eta = jax.random.normal(key, (k, n, 2), jnp.float32)
+    rho = params.noise_correlation
+    if rho > 0.0:
+        a = math.sqrt(1.0 - rho * rho)
+
+        def ar(prev, e):
+            cur = rho * prev + a * e
+            return cur, cur
+
+        _, rest = jax.lax.scan(ar, eta[:, 0], jnp.swapaxes(eta[:, 1:], 0, 1))
+        eta = jnp.concatenate([eta[:, :1], jnp.swapaxes(rest, 0, 1)], axis=1)
+    return eta * std
+
+
+def _iteration(params: PlannerParams, state: PlannerState, x0, u_prev, goal, m: MapView):
+    key, sub, mc = jax.random.split(state.key, 3)
+    k = params.samples
+    eps = sample_noise(params, sub)
     eps = eps.at[0].set(0.0)                          # sample 0: the nominal itself
     candidates = state.nominal[None] + eps
     states, applied, xdots = jax.vmap(rollout, in_axes=(None, None, None, 0))(
