@@ -1,5 +1,6 @@
 """MPPI pieces against float64 references, and the controller's behaviour."""
 
+import dataclasses
 import math
 
 import jax
@@ -211,7 +212,6 @@ def test_sampling_noise_has_the_configured_std_and_correlation(rho):
     """AR(1) noise along the horizon: every step keeps the configured std, neighbouring
     steps correlate by rho (a float64 estimate over many samples); rho = 0 is the
     white noise of the paper's sampler, bit for bit."""
-    import dataclasses
     params = dataclasses.replace(PP, samples=20000, noise_correlation=rho)
     key = jax.random.PRNGKey(7)
     eps = np.asarray(mppi.sample_noise(params, key), np.float64)
