@@ -226,3 +226,35 @@ def test_sampling_noise_has_the_configured_std_and_correlation(rho):
     if rho == 0.0:
         white = jax.random.normal(key, (params.samples, params.horizon, 2), jnp.float32)
         np.testing.assert_array_equal(eps, np.asarray(white * jnp.asarray(std, jnp.float32)))
+
+
+def test_brake_samples_find_the_stop_that_random_samples_miss():
+    """A wall across the whole road appears 12 m ahead of a vehicle at 7 m/s whose
+    nominal accelerates: full braking stops it short, the random samples around the
+    nominal (force std 1500 N, the brake limit 6 stds below) all hit. The braking
+    samples carry the brake limit over the horizon around the nominal's steering."""
+    mean = jnp.zeros((400, 400), jnp.float32).at[50:350, 170:175].set(2.0)   # x 34-35 m
+    m = MapView(mean, jnp.zeros_like(mean), jnp.zeros(2), 0.2)
+    x0 = np.array([7.0, 0, 0, 20.0, 40.0, 0.0])
+    u_prev = np.array([0.0, 3000.0])
+    goal = np.array([70.0, 40.0, 0.0])
+    hit = {}
+    for b in (0, 3):
+        params = dataclasses.replace(PP, brake_samples=b)
+        qs = mppi.initial_state(params, 0)
+        qs = qs._replace(nominal=jnp.tile(jnp.asarray([0.0, 3000.0], jnp.float32),
+                                          (PP.horizon, 1)))
+        if b:
+            seqs = np.asarray(mppi.brake_sequences(params, qs.nominal))
+            assert seqs.shape == (3, PP.horizon, 2)
+            np.testing.assert_allclose(seqs[:, :, 1], CFG.vehicle.force_min_n)
+            np.testing.assert_allclose(seqs[:, 0, 0], [-0.3, 0.0, 0.3], atol=1e-6)
+        for _ in range(3):
+            qs, out = mppi.solve(params, qs, x0, u_prev, goal, m.mean, m.variance, m.origin,
+                                 0.2)
+        hit[b] = float(out.terms[2])
+        front = np.asarray(out.optimal)[:, S.X] + CFG.vehicle.footprint_length_m / 2
+        if b:
+            assert float(out.controls[:10, 1].min()) < -4000.0         # braking hard
+            assert front.max() < 34.0 and hit[b] == 0.0                # and stops short
+    assert hit[0] > 0.0                                               # the test has teeth

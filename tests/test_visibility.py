@@ -1,9 +1,11 @@
 """The visibility-aware variance update against a dense float64 reference."""
 
+import dataclasses
 import math
 
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from common.config import load_config
 from services.planner.costs import OFFSETS
@@ -42,7 +44,7 @@ def reference_visibility(vp, mean, state, rows, cols, res):
 
 
 def reference_decay(vp, variance, seen, rows, cols):
-    """Dense float64: count maps of poses 0 .. i-1, a full 9 x 9 convolution, the decay,
+    """Dense float64: count maps of poses 0 .. i-lag, a full 9 x 9 convolution, the decay,
     read at step i's queries. `seen[i]` = (rows, cols) of pose i's visible points."""
     n = variance.shape[0]
     kern = vp.kernel()
@@ -50,8 +52,8 @@ def reference_decay(vp, variance, seen, rows, cols):
     raw = np.zeros((n, n))
     out = np.zeros(rows.shape)
     for i in range(rows.shape[0]):
-        if i > 0:
-            np.add.at(raw, seen[i - 1], vp.count_value)
+        if i >= vp.lag_steps:
+            np.add.at(raw, seen[i - vp.lag_steps], vp.count_value)
         padded = np.pad(raw, half)
         splat = np.zeros((n, n))
         for dy in range(-half, half + 1):
@@ -62,7 +64,9 @@ def reference_decay(vp, variance, seen, rows, cols):
     return out
 
 
-def test_decayed_variance_matches_the_dense_float64_reference(rng):
+@pytest.mark.parametrize("lag", [1, 4])
+def test_decayed_variance_matches_the_dense_float64_reference(rng, lag):
+    vp = dataclasses.replace(VP, lag_steps=lag)
     n = 120
     mean = (rng.normal(size=(n, n)) * 0.1).astype(np.float32)
     for _ in range(25):                          # obstacles that block rays
@@ -81,29 +85,29 @@ def test_decayed_variance_matches_the_dense_float64_reference(rng):
     cols = rng.integers(1, n - 1, (steps, 8)).astype(np.int32)
     rows[:, :4] = np.clip((y[:, None] / 0.2 + rng.integers(-20, 20, (steps, 4))), 1, n - 2)
     cols[:, :4] = np.clip((x[:, None] / 0.2 + rng.integers(0, 60, (steps, 4))), 1, n - 2)
-    got = np.asarray(decayed_variance(VP, jnp.asarray(mean), jnp.asarray(variance),
+    got = np.asarray(decayed_variance(vp, jnp.asarray(mean), jnp.asarray(variance),
                                       jnp.zeros(2), 0.2, jnp.asarray(states), jnp.asarray(rows),
                                       jnp.asarray(cols), OFFSETS))
     rows = np.concatenate([rows + dr for dr, _ in OFFSETS], axis=1)
     cols = np.concatenate([cols + dc for _, dc in OFFSETS], axis=1)
     seen = []
     for st in states:
-        k_row, k_col, k_vis = (np.asarray(a).reshape(VP.rays, VP.points) for a in visible_points(
-            VP, jnp.asarray(mean), jnp.zeros(2), 0.2, jnp.asarray(st)))
+        k_row, k_col, k_vis = (np.asarray(a).reshape(vp.rays, vp.points) for a in visible_points(
+            vp, jnp.asarray(mean), jnp.zeros(2), 0.2, jnp.asarray(st)))
         # every ray point checked: the kernel's cell is the float64 cell, except for points
         # within float32 rounding of a cell boundary
-        px, py = float64_ray_points(VP, st.astype(np.float64), 0.2)
+        px, py = float64_ray_points(vp, st.astype(np.float64), 0.2)
         f_col, f_row = np.floor(px / 0.2).astype(int), np.floor(py / 0.2).astype(int)
         ambiguous = ((np.abs(px / 0.2 - np.rint(px / 0.2)) < 1e-4)
                      | (np.abs(py / 0.2 - np.rint(py / 0.2)) < 1e-4))
         assert ((k_col == f_col) & (k_row == f_row) | ambiguous).all()
         # visibility: the float64 rule on those cells
-        ref_vis = reference_visibility(VP, mean.astype(np.float64), st.astype(np.float64),
+        ref_vis = reference_visibility(vp, mean.astype(np.float64), st.astype(np.float64),
                                        k_row, k_col, 0.2)
         np.testing.assert_array_equal(k_vis, ref_vis)
         seen.append((k_row[k_vis], k_col[k_vis]))
-    ref = reference_decay(VP, variance.astype(np.float64), seen, rows, cols)
-    np.testing.assert_allclose(got[0], variance[rows[0], cols[0]])   # nothing seen yet
+    ref = reference_decay(vp, variance.astype(np.float64), seen, rows, cols)
+    np.testing.assert_allclose(got[:lag], variance[rows[:lag], cols[:lag]])   # nothing seen yet
     assert (ref < variance[rows, cols] * 0.999).mean() > 0.2          # the test has teeth
     np.testing.assert_allclose(got, ref, rtol=2e-4, atol=1e-6)
 
@@ -126,7 +130,6 @@ def test_blocked_rays_stop_at_the_first_blocker():
 def test_batched_update_equals_one_trajectory_at_a_time(rng):
     """The count map is shared by the trajectories in turn and cleaned after each:
     nothing of one may leak into the next, whatever the chunking."""
-    import dataclasses
 
     from services.planner.visibility import batched_decayed_variance
     n, k, steps = 100, 5, 8

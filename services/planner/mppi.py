@@ -41,6 +41,7 @@ class PlannerParams:
     temperature: float                 # lambda
     noise_std: tuple[float, float]     # delta, f_xt
     noise_correlation: float           # rho of the AR(1) noise along the horizon; 0 = white
+    brake_samples: int                 # samples replaced by full braking (0: the paper's MPPI)
     rollouts_published: int
     vehicle: VehicleConfig
     limits: ControlLimits
@@ -52,6 +53,7 @@ class PlannerParams:
         p = cfg.planner
         return cls(p.controller, p.samples, p.horizon, p.dt_s, p.substeps, p.iterations,
                    p.temperature, (p.noise_steer_rad, p.noise_force_n), p.noise_correlation,
+                   min(p.brake_samples, p.samples - 1),
                    min(p.rollouts_published, p.samples), cfg.vehicle,
                    ControlLimits.from_config(cfg.vehicle), CostParams.from_config(cfg),
                    VisibilityParams.from_config(cfg))
@@ -150,12 +152,29 @@ def sample_noise(params: PlannerParams, key: jax.Array) -> jax.Array:
     return eta * std
 
 
+def brake_sequences(params: PlannerParams, nominal: jax.Array) -> jax.Array:
+    """(B, N, 2) full-braking candidates: the brake limit over the whole horizon, the
+    nominal's steering shifted by B offsets spread over +-half the steering limit (one
+    sample: the nominal's own). Random samples around a nominal that accelerates almost
+    never brake hard (the limit is 5 force stds away), so without them MPPI can miss
+    the one safe choice when an obstacle appears late (docs/planner.md)."""
+    b = params.brake_samples
+    half = 0.5 * params.limits.hi[0]
+    offs = jnp.linspace(-half, half, b) if b > 1 else jnp.zeros((1,))
+    steer = nominal[None, :, 0] + offs[:, None].astype(jnp.float32)
+    force = jnp.full(steer.shape, params.limits.lo[1], jnp.float32)
+    return jnp.stack([steer, force], axis=-1)
+
+
 def _iteration(params: PlannerParams, state: PlannerState, x0, u_prev, goal, m: MapView):
     key, sub, mc = jax.random.split(state.key, 3)
     k = params.samples
     eps = sample_noise(params, sub)
     eps = eps.at[0].set(0.0)                          # sample 0: the nominal itself
     candidates = state.nominal[None] + eps
+    if params.brake_samples:                          # samples 1 .. B: full braking
+        candidates = candidates.at[1:1 + params.brake_samples].set(
+            brake_sequences(params, state.nominal))
     states, applied, xdots = jax.vmap(rollout, in_axes=(None, None, None, 0))(
         params, x0, u_prev, candidates)
 

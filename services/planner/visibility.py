@@ -13,14 +13,16 @@ Sigma * exp(-gamma * C) (Eq. uncertainty_update_equation, with the sign that
 makes uncertainty shrink).
 
 Causality: the variance the trajectory meets at step i uses only the points
-seen from poses 0 .. i-1. A scan over the horizon carries a raw (unsplatted)
-count map: step i adds pose i-1's visible points, then copies the 11 x 11
-patch of raw counts around each of step i's footprint cells; one matmul after
-the horizon turns the patches into splatted counts at the five cells. Memory:
-one padded map per trajectory processed side by side (`va_chunk`), shared by
-the trajectories in turn and cleaned after each, never K full maps; the
-visible points of every pose (K x N x 600 indices: 77 MB at K = 800); the
-patches of one chunk (N x chunk x P x 121 floats: 2.3 MB).
+seen from poses 0 .. i-lag; lag = 1 is the paper's remark (what it could have
+seen before), a larger lag makes a point seen count only once there is time to
+act on it (`planner.visibility_lag_steps`, docs/planner.md). A scan over the
+horizon carries a raw (unsplatted) count map: step i adds pose i-lag's visible
+points, then copies the 11 x 11 patch of raw counts around each of step i's
+footprint cells; one matmul after the horizon turns the patches into splatted
+counts at the five cells. Memory: one padded map per trajectory processed side
+by side (`va_chunk`), shared by the trajectories in turn and cleaned after
+each, never K full maps; the visible points of every pose (K x N x 600
+indices: 77 MB at K = 800); the patches of one chunk (N x chunk x P x 121 floats: 2.3 MB).
 """
 
 from __future__ import annotations
@@ -50,6 +52,7 @@ class VisibilityParams:
     splat_sigma_cells: float   # 1 (text)
     gamma: float               # 0.3 (Table II)
     mount_forward_m: float     # rays start at the camera
+    lag_steps: int             # step i meets what poses 0 .. i - lag saw (1: the paper's)
     chunk: int                 # trajectories per chunk (memory bound); 0 = auto
 
     @classmethod
@@ -58,7 +61,7 @@ class VisibilityParams:
         return cls(p.visibility_rays, p.visibility_points, p.visibility_min_m,
                    p.visibility_max_m, math.radians(cfg.sensor.hfov_deg), p.visibility_height_m,
                    p.count_value, p.splat_size, p.splat_sigma_cells, p.decay_gamma,
-                   cfg.sensor.mount_forward_m, p.va_chunk)
+                   cfg.sensor.mount_forward_m, p.visibility_lag_steps, p.va_chunk)
 
     def ray_grid(self) -> np.ndarray:
         """Body-frame offsets (rays * points, 2) of the ray points from the CG."""
@@ -136,9 +139,9 @@ def batched_decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, ori
     states (K, N+1, 6); rows/cols (K, N+1, P) int, the footprint points' cells
     (at least `max|offset|` inside the map); returns (K, N+1, len(offsets) * P),
     offset-major: block k is the cells rows + offsets[k][0], cols + offsets[k][1].
-    Step i sees the points of poses 0 .. i-1 only.
+    Step i sees the points of poses 0 .. i-lag only (steps before lag: the prior).
 
-    The visible points of poses 0 .. N-1 are found at once, vectorised over K and
+    The visible points of poses 0 .. N-lag are found at once, vectorised over K and
     N. Then raw count maps (visible points per cell, unsplatted; `chunk`
     trajectories side by side) go through the trajectories in turn (`lax.scan`):
     for each, a scan over the horizon adds pose i-1's points and copies out the
@@ -157,15 +160,20 @@ def batched_decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, ori
     hp, wp = h + 2 * pad, w + 2 * pad
     weights = jnp.asarray(offset_kernels(vp, offsets) * vp.count_value, jnp.float32)
 
-    row, col, vis = visible_points(vp, mean, origin, resolution, states[:, :-1])  # (K, N, M)
+    qr = jnp.concatenate([rows + dr for dr, _ in offsets], axis=-1)
+    qc = jnp.concatenate([cols + dc for _, dc in offsets], axis=-1)
+    prior = jnp.take(variance.reshape(-1), jnp.clip(qr, 0, h - 1) * w + jnp.clip(qc, 0, w - 1))
+    lag = vp.lag_steps
+    n_steps = rows.shape[1] - 1
+    if lag > n_steps:                                            # nothing seen in time
+        return prior
+
+    # poses 0 .. N-lag, read at steps lag .. N
+    row, col, vis = visible_points(vp, mean, origin, resolution, states[:, :n_steps - lag + 1])
     flat = jnp.where(vis, (row + pad) * wp + col + pad, hp * wp)   # unseen: dropped
     # the patch around a footprint cell starts at the cell itself in padded coordinates
     pr = jnp.clip(rows, reach, h - 1 - reach)
     pc = jnp.clip(cols, reach, w - 1 - reach)
-
-    qr = jnp.concatenate([rows + dr for dr, _ in offsets], axis=-1)
-    qc = jnp.concatenate([cols + dc for _, dc in offsets], axis=-1)
-    prior = jnp.take(variance.reshape(-1), jnp.clip(qr, 0, h - 1) * w + jnp.clip(qc, 0, w - 1))
 
     chunk = vp.chunk or (8 if jax.default_backend() == "cpu" else 256)
     chunk = max(1, min(chunk, k_traj))
@@ -181,7 +189,8 @@ def batched_decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, ori
         return jax.vmap(lambda r1, c1: jax.lax.dynamic_slice(m2, (r1, c1), (size, size)))(r, c)
 
     def per_chunk(maps, inp):
-        """`chunk` trajectories: fl (chunk, N, M) their poses' points, r/c (chunk, N+1, P)."""
+        """`chunk` trajectories: fl (chunk, N-lag+1, M) their poses' points, r/c
+        (chunk, N+1, P)."""
         fl, r, c = inp
 
         def step(m, x):
@@ -190,15 +199,17 @@ def batched_decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, ori
             return m, jax.vmap(patches)(m.reshape(chunk, hp, wp), r1, c1)
 
         maps, pts = jax.lax.scan(step, maps, (jnp.swapaxes(fl, 0, 1),
-                                              jnp.swapaxes(r[:, 1:], 0, 1),
-                                              jnp.swapaxes(c[:, 1:], 0, 1)))
+                                              jnp.swapaxes(r[:, lag:], 0, 1),
+                                              jnp.swapaxes(c[:, lag:], 0, 1)))
         n, _, n_pts = pts.shape[:3]
         # HIGHEST: exact float32 everywhere (no TF32 on a GPU), and on XLA:CPU 1.7x faster
         cnt = jnp.matmul(pts.reshape(n, chunk, n_pts, size * size), weights,
                          precision=jax.lax.Precision.HIGHEST)           # (N, chunk, P, 5)
         cnt = jnp.transpose(cnt, (1, 0, 3, 2)).reshape(chunk, n, -1)   # offset-major
         maps = jax.vmap(lambda mm, ff: mm.at[ff.reshape(-1)].set(0.0, mode="drop"))(maps, fl)
-        return maps, jnp.concatenate([jnp.zeros_like(cnt[:, :1]), cnt], axis=1)  # step 0
+        # steps 0 .. lag-1 have seen nothing yet
+        return maps, jnp.concatenate([jnp.zeros((chunk, lag) + cnt.shape[2:], cnt.dtype), cnt],
+                                     axis=1)
 
     maps = jnp.zeros((chunk, hp * wp), jnp.float32)
     _, c = jax.lax.scan(per_chunk, maps, (split(flat), split(pr), split(pc)))
