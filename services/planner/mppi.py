@@ -156,7 +156,7 @@ def brake_sequences(params: PlannerParams, nominal: jax.Array) -> jax.Array:
     """(B, N, 2) full-braking candidates: the brake limit over the whole horizon, the
     nominal's steering shifted by B offsets spread over +-half the steering limit (one
     sample: the nominal's own). Random samples around a nominal that accelerates almost
-    never brake hard (the limit is 5 force stds away), so without them MPPI can miss
+    never brake hard (the limit is some 6 force stds below), so without them MPPI can miss
     the one safe choice when an obstacle appears late (docs/planner.md)."""
     b = params.brake_samples
     half = 0.5 * params.limits.hi[0]

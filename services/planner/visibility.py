@@ -144,7 +144,7 @@ def batched_decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, ori
     The visible points of poses 0 .. N-lag are found at once, vectorised over K and
     N. Then raw count maps (visible points per cell, unsplatted; `chunk`
     trajectories side by side) go through the trajectories in turn (`lax.scan`):
-    for each, a scan over the horizon adds pose i-1's points and copies out the
+    for each, a scan over the horizon adds pose i-lag's points and copies out the
     S x S patch of raw counts around each footprint cell (S = splat size + 2
     max|offset|: a slice of S contiguous rows, not S*S single lookups). After the
     horizon, one matmul turns every patch into the splatted counts at the five
