@@ -176,7 +176,7 @@ def plot_visibility(cfg: Config, scenario: str, samples: int, seed: int, out: Pa
             ax.plot(s["optimal"][:, 3], s["optimal"][:, 4], "c-", lw=1.5)
             ax.plot(s["x"][3], s["x"][4], "wo", ms=4)
             ax.set_title(f"{title}, t = {s['t']:.1f} s, surface cost {s['terms'][2]:.0f}, "
-                         f"f_xt {s['u'][1]:.0f} N", fontsize=8)
+                         f"f_xt {s['controls'][0][1]:.0f} N", fontsize=8)
     fig.suptitle(f"{scenario}, VA-MPPI K={samples}: {result.outcome}")
     return _save(fig, out / f"visibility_{scenario}.png", dpi=110)
 

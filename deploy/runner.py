@@ -99,7 +99,7 @@ def run_episode(cfg: Config, cores: Cores | None = None,
             snapshots.append({"t": ps.t, "x": ps.x.copy(), "mean": m.mean.copy(),
                               "variance": m.variance.copy(),
                               "optimal": np.asarray(out.optimal), "terms": np.asarray(out.terms),
-                              "u": controls[0].copy(), "controls": controls.copy(),
+                              "controls": controls.copy(),
                               "u_prev": np.asarray(ps.u_applied).copy()})
         t0 = ps.t
         for _ in range(cores.plant.steps_per_tick):
