@@ -12,6 +12,7 @@ import time
 import msgpack
 import numpy as np
 import pytest
+import zenoh
 from mcap.reader import make_reader
 
 from common.bus import open_session, topic_key
@@ -191,8 +192,11 @@ def test_recorder_killed_mid_stream_loses_at_most_the_last_second(router, tmp_pa
             assert time.monotonic() < deadline and proc.poll() is None
         maps = [encode(a_map(i, rng)) for i in range(2)]
         with open_session(client(router)) as s:
-            ps = s.declare_publisher(topic_key("v", "state"))
-            pm = s.declare_publisher(topic_key("v", "map"))
+            # published as the nodes publish (common.bus.TypedPublisher): reliable, blocking;
+            # the default (drop) loses states queued behind a 1.3 MB map on a loaded machine
+            ps, pm = (s.declare_publisher(topic_key("v", k), reliability=zenoh.Reliability.RELIABLE,
+                                          congestion_control=zenoh.CongestionControl.BLOCK)
+                      for k in ("state", "map"))
             wait_for_subscriber(ps, pm)
             sent_at = []
             t0 = time.monotonic()
