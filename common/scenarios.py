@@ -26,6 +26,8 @@ class Obstacle:
     half_x: float = 0.0       # box half extents along its own axes
     half_y: float = 0.0
     yaw: float = 0.0          # box orientation
+    hidden: bool = False      # meant to stay unseen from the approach the scenario is built
+                              # around (tests/test_scenarios.py, `vamppi reveal`)
 
 
 @dataclass(frozen=True)
@@ -100,8 +102,8 @@ def _alleyway(rng: np.random.Generator) -> tuple[Pose2, Pose2, list[Obstacle], s
     # behind the block, one on each side, just inside its edges: hidden from the
     # centre line until the vehicle is in a gap, on the line a fast vehicle takes
     # from the gap back toward the goal; the way on is between the two (4.8 m)
-    hidden = [Obstacle("cylinder", 47.0, 36.6, 2.0, radius=1.0),
-              Obstacle("cylinder", 47.0, 43.4, 2.0, radius=1.0)]
+    hidden = [Obstacle("cylinder", 47.0, 36.6, 2.0, radius=1.0, hidden=True),
+              Obstacle("cylinder", 47.0, 43.4, 2.0, radius=1.0, hidden=True)]
     return (Pose2(12.0, 40.0, 0.0), Pose2(62.0, 40.0, 0.0), walls + central + hidden,
             "An alley 14 m wide; a large central obstacle leaves a 3.5 m gap on each side "
             "and hides one obstacle behind each of its sides.")
@@ -115,8 +117,8 @@ def _offroad(rng: np.random.Generator) -> tuple[Pose2, Pose2, list[Obstacle], st
     # ... which two obstacles behind the trees close: invisible from the road and the
     # start of the turn, seen only once the vehicle faces the gap (about 8 m off);
     # the way in is round the rocks
-    hidden = [Obstacle("cylinder", 55.5, 32.0, 2.0, radius=1.0),
-              Obstacle("cylinder", 52.0, 37.0, 2.0, radius=1.2)]
+    hidden = [Obstacle("cylinder", 55.5, 32.0, 2.0, radius=1.0, hidden=True),
+              Obstacle("cylinder", 52.0, 37.0, 2.0, radius=1.2, hidden=True)]
     return (Pose2(8.0, 20.0, 0.0), Pose2(45.0, 46.0, math.pi / 2), trees + rocks + hidden,
             "A road beside a field behind a thin tree line; the vehicle drives to the "
             "row's end and turns sharply left into the field, where the short way in, "

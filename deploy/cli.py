@@ -8,6 +8,7 @@
     vamppi experiment --scenario alleyway,offroad --controllers va,deterministic,prescient \\
         --samples 400,1000,4000 --runs 100 --seed 0 --out DIR
     vamppi config ...        print the effective configuration as JSON
+    vamppi reveal DIR        when each hidden obstacle was first seen, and could it stop
 
 Every command takes `--config FILE` and `--set section.key=value` (repeatable).
 """
@@ -295,6 +296,22 @@ def cmd_timing(args: argparse.Namespace, cfg: Config) -> int:
     return 0
 
 
+def cmd_reveal(args: argparse.Namespace, cfg: Config) -> int:
+    """First sightings of each (hidden) obstacle along the paths of an experiment's runs."""
+    from deploy.experiment import read_runs
+    from deploy.reveal import reveal_runs, table
+    path = Path(args.runs)
+    if path.is_dir():
+        path = path / "runs.jsonl"
+    if not path.exists():
+        raise FileNotFoundError(f"no such file: {path}")
+    runs = [r for r in read_runs(path)
+            if args.only is None or r["controller"] in args.only.split(",")]
+    rows = reveal_runs(cfg, runs, "all" if args.all_obstacles else "hidden")
+    print(json.dumps(rows, indent=1) if args.json else table(rows))
+    return 0
+
+
 def cmd_export_foxglove(args: argparse.Namespace, cfg: Config) -> int:
     from deploy.foxglove import export
     report = export(args.input, args.output, args.map_stride, args.rollouts)
@@ -362,6 +379,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="export every n-th map (maps are 1.7 MB each as JSON)")
     p.add_argument("--rollouts", type=int, default=30, help="sampled rollouts drawn per plan")
     p.set_defaults(func=cmd_export_foxglove)
+
+    p = sub.add_parser("reveal", help="when each hidden obstacle was first seen in a run, "
+                                      "and whether the vehicle could still stop")
+    p.add_argument("runs", help="an experiment's runs.jsonl (or its directory)")
+    p.add_argument("--controller", dest="only", help="only these controllers (a,b)")
+    p.add_argument("--all-obstacles", action="store_true", help="every obstacle, not only hidden")
+    p.add_argument("--json", action="store_true", help="JSON rows instead of a table")
+    p.add_argument("--config", help="TOML file merged over the defaults")
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
+    p.set_defaults(func=cmd_reveal)
 
     p = sub.add_parser("service", help="run one service on its own")
     p.add_argument("name", choices=sorted(SERVICE_MAINS))

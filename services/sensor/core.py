@@ -141,3 +141,13 @@ def render(p: CameraParams, heightmap: np.ndarray, origin: tuple[float, float], 
     depth = render_depth(p, heightmap, jnp.asarray(origin, jnp.float32), float(resolution),
                          jnp.asarray(pos, jnp.float32), jnp.asarray(rot, jnp.float32))
     return np.asarray(depth), pos, rot
+
+
+def return_points(p: CameraParams, depth: np.ndarray, pos: np.ndarray, rot: np.ndarray
+                  ) -> np.ndarray:
+    """World x, y, z (M, 3) of every return of a depth image (0 = no return)."""
+    dirs = ray_directions(p).reshape(-1, 3)
+    d = np.asarray(depth, dtype=np.float64).reshape(-1)
+    hit = d > 0
+    t = d[hit] / dirs[hit, 2]                        # z-depth -> distance along the ray
+    return pos + (dirs[hit] @ rot.T) * t[:, None]

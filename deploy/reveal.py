@@ -1,0 +1,158 @@
+"""When did the camera first see each obstacle, and could the vehicle still stop?
+
+`vamppi reveal DIR/runs.jsonl` drives the ground-truth depth camera
+(services/sensor/core.py, the sensor service's own renderer) along every
+recorded path and reports, per run and obstacle, the first pose from which
+`min_returns` or more depth returns land on the obstacle: the time, the gap
+from the vehicle's front edge to the obstacle's surface, the speed, and the
+distance the vehicle needs to stop from that speed. A hidden obstacle first
+seen with a gap larger than the stopping distance could have been avoided by
+braking; a collision after such a sighting is the planner's, not the
+occlusion's (docs/results.md).
+
+The path of a run record is 10 Hz (t, X, Y, V) without heading; the heading
+of sample i is the direction from sample i-1 to i (samples below 0.2 m/s are
+skipped: standing still, the heading is undefined).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from common.config import Config
+from common.scenarios import Obstacle, Scenario
+from services.sensor import core as sensor
+
+MIN_RETURNS = 20       # returns on an obstacle that count as seeing it (a 128 x 72 image)
+MIN_SPEED_MPS = 0.2
+
+
+@dataclass(frozen=True)
+class Sighting:
+    obstacle: int            # index into scenario.obstacles
+    t_s: float | None        # None: never seen along the path
+    gap_m: float             # front edge to the obstacle's surface, straight line
+    speed_mps: float
+    stopping_m: float        # from that speed: one control tick, the brake ramp, full braking
+
+    @property
+    def stoppable(self) -> bool:
+        return self.t_s is not None and self.gap_m > self.stopping_m
+
+
+def stopping_distance(cfg: Config, v: float) -> float:
+    """Travel from the sighting to standing still on flat ground, drag and rolling
+    resistance left out: one control tick at v before the command changes, the force
+    ramping 0 -> brake limit at the rate limit, then the brake limit."""
+    veh = cfg.vehicle
+    a = -veh.force_min_n / veh.mass_kg                     # full deceleration
+    ramp = -veh.force_min_n / veh.force_rate_max_nps       # seconds to reach it
+    d = v * cfg.planner.dt_s
+    if v <= a * ramp / 2.0:                                # stops during the ramp: v = a t^2 / 2T
+        t = math.sqrt(2.0 * v * ramp / a)
+        return d + v * t - a * t ** 3 / (6.0 * ramp)
+    v1 = v - a * ramp / 2.0
+    return d + v * ramp - a * ramp ** 2 / 6.0 + v1 * v1 / (2.0 * a)
+
+
+def surface_distance(ob: Obstacle, x: float, y: float) -> float:
+    """Distance from (x, y) to the obstacle's footprint (0 inside)."""
+    if ob.kind == "cylinder":
+        return max(0.0, math.hypot(x - ob.x, y - ob.y) - ob.radius)
+    c, s = math.cos(ob.yaw), math.sin(ob.yaw)
+    u, w = (x - ob.x) * c + (y - ob.y) * s, -(x - ob.x) * s + (y - ob.y) * c
+    return math.hypot(max(0.0, abs(u) - ob.half_x), max(0.0, abs(w) - ob.half_y))
+
+
+def returns_on(points: np.ndarray, ob: Obstacle, margin: float = 0.15) -> int:
+    """How many return points (M, >=2) land on the obstacle's footprint grown by margin."""
+    if ob.kind == "cylinder":
+        d = np.hypot(points[:, 0] - ob.x, points[:, 1] - ob.y) - ob.radius
+    else:
+        c, s = math.cos(ob.yaw), math.sin(ob.yaw)
+        u = (points[:, 0] - ob.x) * c + (points[:, 1] - ob.y) * s
+        w = -(points[:, 0] - ob.x) * s + (points[:, 1] - ob.y) * c
+        d = np.maximum(np.abs(u) - ob.half_x, np.abs(w) - ob.half_y)
+    return int((d <= margin).sum())
+
+
+def seen_from(cam: sensor.CameraParams, scn: Scenario, x: float, y: float, yaw: float
+              ) -> np.ndarray:
+    """World points (M, 3) of the ground-truth camera's returns from a vehicle pose."""
+    col = min(max(int(x / scn.resolution), 0), scn.heightmap.shape[1] - 1)
+    row = min(max(int(y / scn.resolution), 0), scn.heightmap.shape[0] - 1)
+    depth, pos, rot = sensor.render(cam, scn.heightmap, scn.origin, scn.resolution,
+                                    x, y, float(scn.terrain[row, col]), yaw)
+    return sensor.return_points(cam, depth, pos, rot)
+
+
+def poses_of_path(path: np.ndarray) -> list[tuple[float, float, float, float, float]]:
+    """(t, x, y, yaw, v) of a (T, 4) path (t, X, Y, V), heading from consecutive samples."""
+    out = []
+    for i in range(1, len(path)):
+        t, x, y, v = (float(a) for a in path[i])
+        dx, dy = x - path[i - 1][1], y - path[i - 1][2]
+        if v >= MIN_SPEED_MPS and math.hypot(dx, dy) > 1e-6:
+            out.append((t, x, y, math.atan2(dy, dx), v))
+    return out
+
+
+def first_sightings(cfg: Config, scn: Scenario, poses, which: list[int],
+                    min_returns: int = MIN_RETURNS) -> list[Sighting]:
+    """For each obstacle index in `which`, its first sighting along the poses (t, x, y, yaw, v)."""
+    cam = sensor.CameraParams.from_config(cfg.sensor)
+    half = cfg.vehicle.footprint_length_m / 2.0
+    found: dict[int, Sighting] = {}
+    for t, x, y, yaw, v in poses:
+        if len(found) == len(which):
+            break
+        pts = seen_from(cam, scn, x, y, yaw)
+        for k in which:
+            if k not in found and returns_on(pts, scn.obstacles[k]) >= min_returns:
+                fx, fy = x + half * math.cos(yaw), y + half * math.sin(yaw)
+                found[k] = Sighting(k, t, surface_distance(scn.obstacles[k], fx, fy), v,
+                                    stopping_distance(cfg, v))
+    return [found.get(k, Sighting(k, None, math.nan, math.nan, math.nan)) for k in which]
+
+
+def reveal_runs(cfg: Config, runs: list[dict], obstacles: str = "hidden",
+                min_returns: int = MIN_RETURNS) -> list[dict]:
+    """One row per run and obstacle; `obstacles` is "hidden" or "all"."""
+    from common.scenarios import build_scenario
+    cache: dict[tuple[str, int], Scenario] = {}
+    rows = []
+    for r in runs:
+        key = (r["scenario"], int(r.get("scenario_seed", cfg.episode.scenario_seed)))
+        if key not in cache:
+            cache[key] = build_scenario(key[0], key[1], cfg.mapper.resolution_m)
+        scn = cache[key]
+        which = [i for i, o in enumerate(scn.obstacles) if obstacles == "all" or o.hidden]
+        for s in first_sightings(cfg, scn, poses_of_path(np.asarray(r["path"], float)), which,
+                                 min_returns):
+            ob = scn.obstacles[s.obstacle]
+            rows.append({"scenario": r["scenario"], "controller": r["controller"],
+                         "samples": r["samples"], "seed": r["seed"], "outcome": r["outcome"],
+                         "obstacle": [ob.x, ob.y], "seen_at_s": s.t_s,
+                         "gap_m": None if s.t_s is None else round(s.gap_m, 2),
+                         "speed_mps": None if s.t_s is None else round(s.speed_mps, 2),
+                         "stopping_m": None if s.t_s is None else round(s.stopping_m, 2),
+                         "stoppable": s.stoppable})
+    return rows
+
+
+def table(rows: list[dict]) -> str:
+    lines = ["| scenario | controller | K | seed | outcome | obstacle | seen at | gap | speed "
+             "| stopping distance | could stop |", "|" + "---|" * 11]
+    for r in rows:
+        ob = f"({r['obstacle'][0]:g}, {r['obstacle'][1]:g})"
+        if r["seen_at_s"] is None:
+            seen = "never | | | |"
+        else:
+            seen = (f"{r['seen_at_s']:.1f} s | {r['gap_m']:.1f} m | {r['speed_mps']:.1f} m/s | "
+                    f"{r['stopping_m']:.1f} m | {'yes' if r['stoppable'] else 'no'}")
+        lines.append(f"| {r['scenario']} | {r['controller']} | {r['samples']} | {r['seed']} | "
+                     f"{r['outcome']} | {ob} | {seen} |")
+    return "\n".join(lines)
