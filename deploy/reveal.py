@@ -67,6 +67,21 @@ def surface_distance(ob: Obstacle, x: float, y: float) -> float:
     return math.hypot(max(0.0, abs(u) - ob.half_x), max(0.0, abs(w) - ob.half_y))
 
 
+def in_view(ob: Obstacle, x: float, y: float, yaw: float, reach: float, half_fov: float
+            ) -> bool:
+    """False only where the obstacle cannot be in the image: out of range or wholly outside
+    the horizontal field of view (a conservative test; the camera decides the rest)."""
+    d = math.hypot(ob.x - x, ob.y - y)
+    extent = ob.radius if ob.kind == "cylinder" else math.hypot(ob.half_x, ob.half_y)
+    if d - extent > reach:
+        return False
+    if d <= extent + 1.0:
+        return True
+    bearing = math.atan2(ob.y - y, ob.x - x) - yaw
+    bearing = math.atan2(math.sin(bearing), math.cos(bearing))
+    return abs(bearing) <= half_fov + math.asin(min(1.0, (extent + 1.0) / d))
+
+
 def returns_on(points: np.ndarray, ob: Obstacle, margin: float = 0.15) -> int:
     """How many return points (M, >=2) land on the obstacle's footprint grown by margin."""
     if ob.kind == "cylinder":
@@ -105,13 +120,19 @@ def first_sightings(cfg: Config, scn: Scenario, poses, which: list[int],
     """For each obstacle index in `which`, its first sighting along the poses (t, x, y, yaw, v)."""
     cam = sensor.CameraParams.from_config(cfg.sensor)
     half = cfg.vehicle.footprint_length_m / 2.0
+    reach = cam.range_m + cam.mount_forward_m + 1.0         # farther than this: no return
+    half_fov = math.atan2(cam.width / 2.0, cam.fx)
     found: dict[int, Sighting] = {}
     for t, x, y, yaw, v in poses:
-        if len(found) == len(which):
-            break
+        near = [k for k in which if k not in found
+                and in_view(scn.obstacles[k], x, y, yaw, reach, half_fov)]
+        if not near:                   # nothing left to find within the camera's range
+            if len(found) == len(which):
+                break
+            continue
         pts = seen_from(cam, scn, x, y, yaw)
-        for k in which:
-            if k not in found and returns_on(pts, scn.obstacles[k]) >= min_returns:
+        for k in near:
+            if returns_on(pts, scn.obstacles[k]) >= min_returns:
                 fx, fy = x + half * math.cos(yaw), y + half * math.sin(yaw)
                 found[k] = Sighting(k, t, surface_distance(scn.obstacles[k], fx, fy), v,
                                     stopping_distance(cfg, v))
