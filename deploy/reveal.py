@@ -128,11 +128,11 @@ def first_sightings(cfg: Config, scn: Scenario, poses, which: list[int],
     half_fov = math.atan2(cam.width / 2.0, cam.fx)
     found: dict[int, Sighting] = {}
     for t, x, y, yaw, v in poses:
+        if len(found) == len(which):
+            break
         near = [k for k in which if k not in found
                 and in_view(scn.obstacles[k], x, y, yaw, reach, half_fov)]
-        if not near:                   # nothing left to find within the camera's range
-            if len(found) == len(which):
-                break
+        if not near:                   # none left to find is in range and in the field of view
             continue
         pts = seen_from(cam, scn, x, y, yaw)
         for k in near:
