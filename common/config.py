@@ -151,6 +151,8 @@ class PlannerConfig:
     splat_sigma_cells: float = _rng(0.0, lo_open=True)
     decay_gamma: float = _rng(0.0)
     va_chunk: int = _rng(0, 1_000_000)
+    va_kernel: str = _rng(choices=("auto", "jax", "native"))
+    va_threads: int = _rng(0, 1024)
     surface_estimator: str = _rng(choices=("closed_form", "monte_carlo"))
     surface_samples: int = _rng(1, 1_000_000)
 

@@ -3,11 +3,13 @@
 import dataclasses
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from common.config import load_config
+from services.planner import native
 from services.planner.costs import OFFSETS
 from services.planner.visibility import VisibilityParams, decayed_variance, visible_points
 
@@ -64,27 +66,41 @@ def reference_decay(vp, variance, seen, rows, cols):
     return out
 
 
-@pytest.mark.parametrize("lag", [1, 4])
-def test_decayed_variance_matches_the_dense_float64_reference(rng, lag):
-    vp = dataclasses.replace(VP, lag_steps=lag)
-    n = 120
+def random_problem(rng, n=120, steps=12):
+    """A random map with obstacles that block rays, a random path over it, and footprint
+    cells: half anywhere, half along the path ahead (where counts build up)."""
     mean = (rng.normal(size=(n, n)) * 0.1).astype(np.float32)
-    for _ in range(25):                          # obstacles that block rays
+    for _ in range(25):
         r, c = rng.integers(5, n - 5, 2)
         mean[r - 2:r + 3, c - 2:c + 3] += rng.uniform(0.5, 3.0)
     variance = rng.uniform(0.5, 3.0, (n, n)).astype(np.float32)
-    steps = 12
-    x = np.cumsum(rng.uniform(0.5, 1.1, steps)) + 3.0     # off cell boundaries (ambiguous)
+    x = np.cumsum(rng.uniform(0.5, 1.1, steps)) + 3.0
     y = 12.0 + np.cumsum(rng.normal(size=steps) * 0.2)
     psi = np.cumsum(rng.normal(size=steps) * 0.15) + rng.uniform(-0.3, 0.3)
     states = np.zeros((steps, 6), np.float32)
     states[:, 3], states[:, 4], states[:, 5] = x, y, psi
-    # footprint cells: half anywhere, half along the path ahead (where counts build up);
-    # the update reads the five OFFSETS cells of each
     rows = rng.integers(1, n - 1, (steps, 8)).astype(np.int32)
     cols = rng.integers(1, n - 1, (steps, 8)).astype(np.int32)
     rows[:, :4] = np.clip((y[:, None] / 0.2 + rng.integers(-20, 20, (steps, 4))), 1, n - 2)
     cols[:, :4] = np.clip((x[:, None] / 0.2 + rng.integers(0, 60, (steps, 4))), 1, n - 2)
+    return mean, variance, states, rows, cols
+
+
+def float64_cells(vp, st):
+    """Every ray point's float64 cell (rays, points), and which lie within float32 rounding
+    (1e-4 cell) of a cell boundary, where a float32 kernel may pick the neighbour."""
+    px, py = float64_ray_points(vp, st.astype(np.float64), 0.2)
+    ambiguous = ((np.abs(px / 0.2 - np.rint(px / 0.2)) < 1e-4)
+                 | (np.abs(py / 0.2 - np.rint(py / 0.2)) < 1e-4))
+    return np.floor(py / 0.2).astype(int), np.floor(px / 0.2).astype(int), ambiguous
+
+
+@pytest.mark.parametrize("lag", [1, 4])
+def test_decayed_variance_matches_the_dense_float64_reference(rng, lag):
+    """The vectorised JAX form: every ray point's cell and visibility checked, then the
+    decayed variance at every query against the dense float64 computation."""
+    vp = dataclasses.replace(VP, lag_steps=lag, backend="jax")
+    mean, variance, states, rows, cols = random_problem(rng)
     got = np.asarray(decayed_variance(vp, jnp.asarray(mean), jnp.asarray(variance),
                                       jnp.zeros(2), 0.2, jnp.asarray(states), jnp.asarray(rows),
                                       jnp.asarray(cols), OFFSETS))
@@ -96,10 +112,7 @@ def test_decayed_variance_matches_the_dense_float64_reference(rng, lag):
             vp, jnp.asarray(mean), jnp.zeros(2), 0.2, jnp.asarray(st)))
         # every ray point checked: the kernel's cell is the float64 cell, except for points
         # within float32 rounding of a cell boundary
-        px, py = float64_ray_points(vp, st.astype(np.float64), 0.2)
-        f_col, f_row = np.floor(px / 0.2).astype(int), np.floor(py / 0.2).astype(int)
-        ambiguous = ((np.abs(px / 0.2 - np.rint(px / 0.2)) < 1e-4)
-                     | (np.abs(py / 0.2 - np.rint(py / 0.2)) < 1e-4))
+        f_row, f_col, ambiguous = float64_cells(vp, st)
         assert ((k_col == f_col) & (k_row == f_row) | ambiguous).all()
         # visibility: the float64 rule on those cells
         ref_vis = reference_visibility(vp, mean.astype(np.float64), st.astype(np.float64),
@@ -110,6 +123,48 @@ def test_decayed_variance_matches_the_dense_float64_reference(rng, lag):
     np.testing.assert_allclose(got[:lag], variance[rows[:lag], cols[:lag]])   # nothing seen yet
     assert (ref < variance[rows, cols] * 0.999).mean() > 0.2          # the test has teeth
     np.testing.assert_allclose(got, ref, rtol=2e-4, atol=1e-6)
+
+
+@pytest.mark.skipif(not native.available(), reason="the native kernel does not build here")
+@pytest.mark.parametrize("lag", [1, 4])
+def test_native_kernel_matches_the_dense_float64_reference(rng, lag):
+    """The C++ kernel (services/planner/native): its cells are not exposed, so the reference
+    is built wholly in float64 (cells, visibility, counts, splat, decay); queries within the
+    splat's reach of a ray point that lies within float32 rounding of a cell boundary are
+    left out (and of the rest of its ray, where the two cells differ in blocking it)."""
+    vp = dataclasses.replace(VP, lag_steps=lag, backend="native")
+    mean, variance, states, rows, cols = random_problem(rng)
+    got = np.asarray(decayed_variance(vp, jnp.asarray(mean), jnp.asarray(variance),
+                                      jnp.zeros(2), 0.2, jnp.asarray(states), jnp.asarray(rows),
+                                      jnp.asarray(cols), OFFSETS))
+    rows = np.concatenate([rows + dr for dr, _ in OFFSETS], axis=1)
+    cols = np.concatenate([cols + dc for _, dc in OFFSETS], axis=1)
+    seen, doubtful = [], np.zeros(mean.shape, bool)
+    half = vp.splat_size // 2
+    for st in states:
+        f_row, f_col, ambiguous = float64_cells(vp, st)
+        vis = reference_visibility(vp, mean.astype(np.float64), st.astype(np.float64),
+                                   f_row, f_col, 0.2)
+        seen.append((f_row[vis], f_col[vis]))
+        px, py = float64_ray_points(vp, st.astype(np.float64), 0.2)
+        ground = mean[int(st[4] / 0.2), int(st[3] / 0.2)] + vp.height_m
+        for r, k in np.argwhere(ambiguous):
+            # the point may count in the neighbouring cell; if the two cells differ in
+            # blocking the ray, the rest of the ray may be seen or not
+            cells = {(int(np.floor((py[r, k] + dy) / 0.2)), int(np.floor((px[r, k] + dx) / 0.2)))
+                     for dy in (-2e-5, 2e-5) for dx in (-2e-5, 2e-5)}
+            blocks = {not (0 <= a < mean.shape[0] and 0 <= b < mean.shape[1])
+                      or mean[a, b] > ground for a, b in cells}
+            for j in range(k, vp.points if len(blocks) > 1 else k + 1):
+                r0, c0 = f_row[r, j], f_col[r, j]
+                doubtful[max(r0 - half - 1, 0):r0 + half + 2,
+                         max(c0 - half - 1, 0):c0 + half + 2] = True
+    ref = reference_decay(vp, variance.astype(np.float64), seen, rows, cols)
+    keep = ~doubtful[rows, cols]
+    assert keep.mean() > 0.7
+    np.testing.assert_allclose(got[:lag], variance[rows[:lag], cols[:lag]])   # nothing seen yet
+    assert (ref[keep] < variance[rows, cols][keep] * 0.999).mean() > 0.2   # the test has teeth
+    np.testing.assert_allclose(got[keep], ref[keep], rtol=2e-4, atol=1e-6)
 
 
 def test_blocked_rays_stop_at_the_first_blocker():
@@ -127,11 +182,15 @@ def test_blocked_rays_stop_at_the_first_blocker():
     assert vis[0].all() and vis[-1].all()                  # the edge rays pass beside it
 
 
-def test_batched_update_equals_one_trajectory_at_a_time(rng):
+@pytest.mark.parametrize("backend", ["jax", "native"])
+def test_batched_update_equals_one_trajectory_at_a_time(rng, backend):
     """The count map is shared by the trajectories in turn and cleaned after each:
-    nothing of one may leak into the next, whatever the chunking."""
+    nothing of one may leak into the next, whatever the chunking (jax) or the split of
+    the trajectories over threads (native)."""
 
     from services.planner.visibility import batched_decayed_variance
+    if backend == "native" and not native.available():
+        pytest.skip("the native kernel does not build here")
     n, k, steps = 100, 5, 8
     mean = (rng.normal(size=(n, n)) * 0.1).astype(np.float32)
     mean[40:45, 60:64] += 2.0
@@ -145,15 +204,44 @@ def test_batched_update_equals_one_trajectory_at_a_time(rng):
     cols = np.clip(states[:, :, 3:4] / 0.2 + rng.integers(0, 40, (k, steps, 6)), 1, n - 2)
     rows, cols = rows.astype(np.int32), cols.astype(np.int32)
     args = (jnp.asarray(mean), jnp.asarray(variance), jnp.zeros(2), 0.2)
-    one = np.stack([np.asarray(decayed_variance(VP, *args, jnp.asarray(states[j]),
+    vp1 = dataclasses.replace(VP, backend=backend, threads=1)
+    one = np.stack([np.asarray(decayed_variance(vp1, *args, jnp.asarray(states[j]),
                                                 jnp.asarray(rows[j]), jnp.asarray(cols[j]),
                                                 OFFSETS)) for j in range(k)])
     prior = np.concatenate([variance[rows + dr, cols + dc] for dr, dc in OFFSETS], axis=-1)
     assert (one < prior * 0.5).mean() > 0.05                  # the trajectories did see
-    for chunk in (1, 2, 8):
-        vp = dataclasses.replace(VP, chunk=chunk)
+    variants = ([dataclasses.replace(vp1, chunk=c) for c in (1, 2, 8)] if backend == "jax"
+                else [dataclasses.replace(vp1, threads=t) for t in (1, 2, 3)])
+    for vp in variants:
         got = np.asarray(batched_decayed_variance(vp, *args, jnp.asarray(states),
                                                   jnp.asarray(rows), jnp.asarray(cols), OFFSETS))
         # float32 sums in another order, amplified by exp(-gamma C) at large counts,
         # move results by up to a few 1e-6; a leak would move them by O(1)
         np.testing.assert_allclose(got, one, rtol=2e-5)
+
+
+@pytest.mark.skipif(not native.available(), reason="the native kernel does not build here")
+def test_native_and_jax_forms_agree_on_a_planning_problem():
+    """Both forms on one VA-MPPI problem (K = 64 rollouts on the offroad map): equal except
+    where a ray point sits within float32 rounding of a cell boundary (their sines and
+    cosines may differ in the last bit), which leaves only a few of the 200 k queries."""
+    from common.config import load_config as load
+    from deploy.bench import planner_inputs
+    from services.planner import mppi
+    from services.planner.costs import MapView
+    cfg = load(overrides=['planner.controller="va"', "planner.samples=64"])
+    x0, u0, _goal, mean, var, origin, res = planner_inputs(cfg)
+    params = mppi.PlannerParams.from_config(cfg)
+    m = MapView(jnp.asarray(mean), jnp.asarray(var), jnp.asarray(origin), res)
+    noise = mppi.sample_noise(params, jax.random.PRNGKey(3))
+    states = jax.jit(jax.vmap(lambda e: mppi.rollout(params, jnp.asarray(x0), jnp.asarray(u0),
+                                                     e)[0]))(noise)
+    out = {}
+    for backend in ("jax", "native"):
+        p = dataclasses.replace(params, visibility=dataclasses.replace(params.visibility,
+                                                                       backend=backend))
+        out[backend] = np.asarray(jax.jit(lambda s, p=p: mppi.query_variance(p, m, s))(states))
+    a, b = out["jax"], out["native"]
+    assert (a < 0.5 * np.asarray(var).max()).mean() > 0.3      # much was seen
+    close = np.isclose(a, b, rtol=1e-4, atol=1e-7)
+    assert close.mean() > 0.999, close.mean()
