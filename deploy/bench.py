@@ -41,7 +41,7 @@ import numpy as np
 from common.config import Config
 from common.scenarios import scenario_of
 from deploy.timing import ChainLog, stats_ms
-from services.planner import mppi
+from services.planner import mppi, native
 
 
 def device_info() -> dict[str, Any]:
@@ -126,7 +126,8 @@ def bench_planner(cfg: Config, samples: list[int], controllers: list[str], reps:
     return {"benchmark": "planner", **device_info(),
             "settings": {"horizon": p.horizon, "iterations": 1, "map_cells": list(inputs[3].shape),
                          "rays": p.visibility_rays, "points": p.visibility_points,
-                         "surface_estimator": p.surface_estimator, "reps": reps},
+                         "surface_estimator": p.surface_estimator, "reps": reps,
+                         "va_kernel": "native" if native.use_native(p.va_kernel) else "jax"},
             "cases": [c.row() for c in cases]}
 
 
