@@ -245,3 +245,20 @@ def test_native_and_jax_forms_agree_on_a_planning_problem():
     assert (a < 0.5 * np.asarray(var).max()).mean() > 0.3      # much was seen
     close = np.isclose(a, b, rtol=1e-4, atol=1e-7)
     assert close.mean() > 0.999, close.mean()
+
+
+@pytest.mark.skipif(not native.available(), reason="the native kernel does not build here")
+def test_native_kernel_refuses_patches_off_the_map():
+    """A footprint patch outside the map is an error from the kernel, not a stray read."""
+    from services.planner.visibility import offset_kernels
+    mean = jnp.zeros((50, 50), jnp.float32)
+    states = jnp.zeros((2, 4, 6), jnp.float32).at[:, :, 3].set(5.0).at[:, :, 4].set(5.0)
+    ok = jnp.full((2, 4, 3), 10, jnp.int32)
+    args = dict(resolution=0.2, height=1.0, rays=VP.rays, points=VP.points, lag=1, pad=5,
+                n_threads=2)
+    w = offset_kernels(VP, OFFSETS)
+    assert np.isfinite(np.asarray(native.va_counts(mean, jnp.zeros(2), states, ok, ok,
+                                                   VP.ray_grid(), w, **args))).all()
+    with pytest.raises(Exception, match="off the map"):
+        np.asarray(native.va_counts(mean, jnp.zeros(2), states, ok.at[1, 2, 0].set(60), ok,
+                                    VP.ray_grid(), w, **args))

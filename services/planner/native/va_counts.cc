@@ -12,9 +12,10 @@
 //
 // Why native: on XLA:CPU the vectorised form pays 3-4 ns per scatter and
 // gather element for 19 M ray points at K = 800 (docs/benchmarks.md); here each
-// ray stops at its first blocker and the map stays in the cache.
+// ray stops at its first blocker and the raw counts are uint16 (the caller keeps
+// T * rays * points below 2^16, so no cell can overflow).
 //
-// Inputs (shapes checked on the Python side, services/planner/native/__init__.py):
+// Inputs (the handler checks their shapes agree and returns an error if not):
 //   mean (H, W) f32, origin (2,) f32, states (K, T, 6) f32 (T = N + 1; X, Y, PSI at
 //   3, 4, 5), rows, cols (K, T, P) i32 patch corners in padded coordinates (the
 //   footprint cells, clipped `reach` inside the map), grid (M, 2) f32 body offsets
@@ -136,9 +137,10 @@ ffi::Error VaCountsImpl(ffi::Buffer<ffi::F32> mean, ffi::Buffer<ffi::F32> origin
                         float resolution, float height, int64_t rays, int64_t points,
                         int64_t lag, int64_t pad, int64_t threads) {
   auto md = mean.dimensions(), sd = states.dimensions(), rd = rows.dimensions(),
-       wd = weights.dimensions();
+       cd = cols.dimensions(), wd = weights.dimensions();
   if (md.size() != 2 || sd.size() != 3 || sd[2] != kStateDim || rd.size() != 3 ||
-      rd[0] != sd[0] || rd[1] != sd[1] || wd.size() != 2 ||
+      rd[0] != sd[0] || rd[1] != sd[1] || cd.size() != 3 || cd[0] != rd[0] ||
+      cd[1] != rd[1] || cd[2] != rd[2] || wd.size() != 2 ||
       grid.element_count() != 2 * rays * points || origin.element_count() != 2) {
     return ffi::Error::InvalidArgument("va_counts: inconsistent shapes");
   }
@@ -147,6 +149,14 @@ ffi::Error VaCountsImpl(ffi::Buffer<ffi::F32> mean, ffi::Buffer<ffi::F32> origin
     return ffi::Error::InvalidArgument("va_counts: weights are not a square patch");
   }
   if (points > kMaxPoints) return ffi::Error::InvalidArgument("va_counts: too many points");
+  // every patch must lie inside the padded map
+  const int64_t row_max = md[0] + 2 * pad - size, col_max = md[1] + 2 * pad - size;
+  for (int64_t j = 0; j < rows.element_count(); ++j) {
+    const int32_t r = rows.typed_data()[j], c = cols.typed_data()[j];
+    if (r < 0 || r > row_max || c < 0 || c > col_max) {
+      return ffi::Error::InvalidArgument("va_counts: a footprint patch lies off the map");
+    }
+  }
   const float* o = origin.typed_data();
   const int64_t m = rays * points, area = wd[0], queries = wd[1];
   std::vector<float> gx(m), gy(m), wt(area * queries);
