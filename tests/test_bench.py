@@ -18,8 +18,13 @@ def test_planner_bench_json_names_the_device_and_every_case():
     for c in cases.values():
         assert c["reps"] == 3 and 0 < c["min_ms"] <= c["median_ms"] <= c["p95_ms"]
         assert c["compile_s"] > 0 and c["peak_mem_mb"] > 0
-    # the visibility update's count map (8 x 410 x 410 float32) is in the VA program only
-    assert cases[("va", 16)]["peak_mem_mb"] > cases[("deterministic", 16)]["peak_mem_mb"] + 4
+    va, det = cases[("va", 16)]["peak_mem_mb"], cases[("deterministic", 16)]["peak_mem_mb"]
+    if doc["settings"]["va_kernel"] == "jax":
+        # the visibility update's count maps (8 x 410 x 410 float32) are in the VA program only
+        assert va > det + 4
+    else:
+        # the native kernel's maps are its own (0.4 MB a thread), outside XLA's accounting
+        assert doc["settings"]["va_kernel"] == "native" and va >= det
 
 
 def bench_json(*args):
