@@ -86,6 +86,18 @@ def random_problem(rng, n=120, steps=12):
     return mean, variance, states, rows, cols
 
 
+def solve_random_problem(vp, rng):
+    """A random problem and the update's decayed variance on it; rows and cols are then
+    the query cells (the five OFFSETS cells of each footprint cell, offset-major)."""
+    mean, variance, states, rows, cols = random_problem(rng)
+    got = np.asarray(decayed_variance(vp, jnp.asarray(mean), jnp.asarray(variance),
+                                      jnp.zeros(2), 0.2, jnp.asarray(states), jnp.asarray(rows),
+                                      jnp.asarray(cols), OFFSETS))
+    rows = np.concatenate([rows + dr for dr, _ in OFFSETS], axis=1)
+    cols = np.concatenate([cols + dc for _, dc in OFFSETS], axis=1)
+    return mean, variance, states, got, rows, cols
+
+
 def float64_cells(vp, st):
     """Every ray point's float64 cell (rays, points), and which lie within float32 rounding
     (1e-4 cell) of a cell boundary, where a float32 kernel may pick the neighbour."""
@@ -100,12 +112,7 @@ def test_decayed_variance_matches_the_dense_float64_reference(rng, lag):
     """The vectorised JAX form: every ray point's cell and visibility checked, then the
     decayed variance at every query against the dense float64 computation."""
     vp = dataclasses.replace(VP, lag_steps=lag, backend="jax")
-    mean, variance, states, rows, cols = random_problem(rng)
-    got = np.asarray(decayed_variance(vp, jnp.asarray(mean), jnp.asarray(variance),
-                                      jnp.zeros(2), 0.2, jnp.asarray(states), jnp.asarray(rows),
-                                      jnp.asarray(cols), OFFSETS))
-    rows = np.concatenate([rows + dr for dr, _ in OFFSETS], axis=1)
-    cols = np.concatenate([cols + dc for _, dc in OFFSETS], axis=1)
+    mean, variance, states, got, rows, cols = solve_random_problem(vp, rng)
     seen = []
     for st in states:
         k_row, k_col, k_vis = (np.asarray(a).reshape(vp.rays, vp.points) for a in visible_points(
@@ -133,12 +140,7 @@ def test_native_kernel_matches_the_dense_float64_reference(rng, lag):
     splat's reach of a ray point that lies within float32 rounding of a cell boundary are
     left out (and of the rest of its ray, where the two cells differ in blocking it)."""
     vp = dataclasses.replace(VP, lag_steps=lag, backend="native")
-    mean, variance, states, rows, cols = random_problem(rng)
-    got = np.asarray(decayed_variance(vp, jnp.asarray(mean), jnp.asarray(variance),
-                                      jnp.zeros(2), 0.2, jnp.asarray(states), jnp.asarray(rows),
-                                      jnp.asarray(cols), OFFSETS))
-    rows = np.concatenate([rows + dr for dr, _ in OFFSETS], axis=1)
-    cols = np.concatenate([cols + dc for _, dc in OFFSETS], axis=1)
+    mean, variance, states, got, rows, cols = solve_random_problem(vp, rng)
     seen, doubtful = [], np.zeros(mean.shape, bool)
     half = vp.splat_size // 2
     for st in states:
