@@ -65,10 +65,10 @@ def library_path() -> Path:
     return SOURCE.with_name(f"_va_counts-{digest}.so")
 
 
-def build(force: bool = False) -> Path:
+def build() -> Path:
     """Compile the library if it is not there (atomically: concurrent builders are safe)."""
     out = library_path()
-    if out.exists() and not force:
+    if out.exists():
         return out
     cxx = os.environ.get("CXX") or shutil.which("g++") or shutil.which("c++")
     if not cxx:
