@@ -250,17 +250,32 @@ def test_native_and_jax_forms_agree_on_a_planning_problem():
 
 
 @pytest.mark.skipif(not native.available(), reason="the native kernel does not build here")
-def test_native_kernel_refuses_patches_off_the_map():
-    """A footprint patch outside the map is an error from the kernel, not a stray read."""
-    from services.planner.visibility import offset_kernels
-    mean = jnp.zeros((50, 50), jnp.float32)
-    states = jnp.zeros((2, 4, 6), jnp.float32).at[:, :, 3].set(5.0).at[:, :, 4].set(5.0)
-    ok = jnp.full((2, 4, 3), 10, jnp.int32)
-    args = dict(resolution=0.2, height=1.0, rays=VP.rays, points=VP.points, lag=1, pad=5,
-                n_threads=2)
+def test_native_kernel_clips_cells_off_the_map_like_the_jax_form(rng):
+    """Footprint cells at and beyond the map's edges: the kernel clips the query cells to
+    the map and the patches inside it as the JAX form does (no stray read), and refuses
+    inconsistent shapes with an error."""
+    from services.planner.visibility import batched_decayed_variance, offset_kernels
+    n = 50
+    mean = jnp.asarray(rng.normal(size=(n, n)) * 0.1, jnp.float32)
+    variance = jnp.asarray(rng.uniform(0.5, 3.0, (n, n)), jnp.float32)
+    states = np.zeros((2, 6, 6), np.float32)
+    states[:, :, 3] = np.linspace(1.0, 9.0, 6)
+    states[:, :, 4] = [[0.5], [9.5]]
+    rows = np.stack([np.full((6, 4), v) for v in (-3, n + 4)]).astype(np.int32)
+    rows[:, :, 1] = [[0], [n - 1]]
+    cols = np.tile(np.array([-7, 3, 25, n + 2], np.int32), (2, 6, 1))
+    out = {}
+    for backend in ("jax", "native"):
+        vp = dataclasses.replace(VP, backend=backend)
+        out[backend] = np.asarray(batched_decayed_variance(
+            vp, mean, variance, jnp.zeros(2), 0.2, jnp.asarray(states), jnp.asarray(rows),
+            jnp.asarray(cols), OFFSETS))
+    assert (out["jax"] < 0.9 * np.asarray(variance).min()).any()    # something was seen
+    np.testing.assert_allclose(out["native"], out["jax"], rtol=1e-5)
     w = offset_kernels(VP, OFFSETS)
-    assert np.isfinite(np.asarray(native.va_counts(mean, jnp.zeros(2), states, ok, ok,
-                                                   VP.ray_grid(), w, **args))).all()
-    with pytest.raises(Exception, match="off the map"):
-        np.asarray(native.va_counts(mean, jnp.zeros(2), states, ok.at[1, 2, 0].set(60), ok,
-                                    VP.ray_grid(), w, **args))
+    with pytest.raises(Exception, match="inconsistent shapes"):
+        np.asarray(native.va_variance(mean, variance, jnp.zeros(2), jnp.asarray(states),
+                                      jnp.asarray(rows), jnp.asarray(cols), OFFSETS[:3],
+                                      VP.ray_grid(), w, resolution=0.2, height=1.0, gamma=0.3,
+                                      rays=VP.rays, points=VP.points, lag=1, pad=5,
+                                      n_threads=2))

@@ -166,27 +166,28 @@ def batched_decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, ori
     pad = vp.splat_size // 2 + reach
     size = 2 * pad + 1                                           # patch side S
     hp, wp = h + 2 * pad, w + 2 * pad
-    weights = jnp.asarray(offset_kernels(vp, offsets) * vp.count_value, jnp.float32)
+    weights = offset_kernels(vp, offsets) * vp.count_value
+    lag = vp.lag_steps
+    n_steps = rows.shape[1] - 1
+    # the same in C++ on a CPU (its raw counts are uint16: at most T * rays * points a cell)
+    if (lag <= n_steps and rows.shape[1] * vp.rays * vp.points < 2 ** 16
+            and native.use_native(vp.backend)):
+        return native.va_variance(mean, variance, origin, states, rows, cols, offsets,
+                                  vp.ray_grid(), weights, resolution=resolution,
+                                  height=vp.height_m, gamma=vp.gamma, rays=vp.rays,
+                                  points=vp.points, lag=lag, pad=pad,
+                                  n_threads=native.threads(vp.threads))
 
     qr = jnp.concatenate([rows + dr for dr, _ in offsets], axis=-1)
     qc = jnp.concatenate([cols + dc for _, dc in offsets], axis=-1)
     prior = jnp.take(variance.reshape(-1), jnp.clip(qr, 0, h - 1) * w + jnp.clip(qc, 0, w - 1))
-    lag = vp.lag_steps
-    n_steps = rows.shape[1] - 1
     if lag > n_steps:                                            # nothing seen in time
         return prior
 
     # the patch around a footprint cell starts at the cell itself in padded coordinates
     pr = jnp.clip(rows, reach, h - 1 - reach)
     pc = jnp.clip(cols, reach, w - 1 - reach)
-    # the same, in C++ on a CPU (its raw counts are uint16: at most T * rays * points a cell)
-    if rows.shape[1] * vp.rays * vp.points < 2 ** 16 and native.use_native(vp.backend):
-        c = native.va_counts(mean, origin, states, pr, pc, vp.ray_grid(),
-                             offset_kernels(vp, offsets) * vp.count_value,
-                             resolution=resolution, height=vp.height_m, rays=vp.rays,
-                             points=vp.points, lag=lag, pad=pad,
-                             n_threads=native.threads(vp.threads))
-        return prior * jnp.exp(-vp.gamma * c)
+    weights = jnp.asarray(weights, jnp.float32)
 
     # poses 0 .. N-lag, read at steps lag .. N
     row, col, vis = visible_points(vp, mean, origin, resolution, states[:, :n_steps - lag + 1])

@@ -1,8 +1,8 @@
-"""The visibility-aware count update as a native CPU kernel (va_counts.cc, XLA FFI).
+"""The visibility-aware variance update as a native CPU kernel (va_counts.cc, XLA FFI).
 
 `planner.va_kernel` chooses: `jax` (the vectorised form of visibility.py, every
 backend), `native` (this kernel; a CPU backend only) or `auto` (native on a CPU
-when it builds, else jax). Both compute the same counts from the same float32
+when it builds, else jax). Both compute the same variances from the same float32
 cells; tests/test_visibility.py checks each against the dense float64 reference.
 
 The library is compiled from its source with the system's C++ compiler
@@ -132,18 +132,20 @@ def threads(requested: int) -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def va_counts(mean: Any, origin: Any, states: Any, rows: Any, cols: Any, grid: np.ndarray,
-              weights: np.ndarray, *, resolution: float, height: float, rays: int, points: int,
-              lag: int, pad: int, n_threads: int) -> Any:
-    """Splatted counts (K, T, Q * P) at the query cells; see va_counts.cc."""
+def va_variance(mean: Any, variance: Any, origin: Any, states: Any, rows: Any, cols: Any,
+                offsets: tuple[tuple[int, int], ...], grid: np.ndarray, weights: np.ndarray, *,
+                resolution: float, height: float, gamma: float, rays: int, points: int,
+                lag: int, pad: int, n_threads: int) -> Any:
+    """The variance (K, T, Q * P) each trajectory meets at its query cells: the map's
+    variance times exp(-gamma C), C the splatted counts; see va_counts.cc."""
     k, t, p = rows.shape
     out = jax.ShapeDtypeStruct((k, t, weights.shape[1] * p), jnp.float32)
     call = jax.ffi.ffi_call(_register(), out, vmap_method="sequential")
-    return call(jnp.asarray(mean, jnp.float32), jnp.asarray(origin, jnp.float32),
-                jnp.asarray(states, jnp.float32), rows.astype(jnp.int32),
-                cols.astype(jnp.int32), jnp.asarray(grid, jnp.float32),
+    return call(jnp.asarray(mean, jnp.float32), jnp.asarray(variance, jnp.float32),
+                jnp.asarray(origin, jnp.float32), jnp.asarray(states, jnp.float32),
+                rows.astype(jnp.int32), cols.astype(jnp.int32),
+                jnp.asarray(offsets, jnp.int32), jnp.asarray(grid, jnp.float32),
                 jnp.asarray(weights, jnp.float32),
                 resolution=np.float32(resolution), height=np.float32(height),
-                rays=np.int64(rays), points=np.int64(points), lag=np.int64(lag),
-                pad=np.int64(pad), threads=np.int64(n_threads))
-
+                gamma=np.float32(gamma), rays=np.int64(rays), points=np.int64(points),
+                lag=np.int64(lag), pad=np.int64(pad), threads=np.int64(n_threads))
