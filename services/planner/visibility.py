@@ -24,7 +24,7 @@ by side (`va_chunk`), shared by the trajectories in turn and cleaned after
 each, never K full maps; the visible points of every pose (K x N x 600
 indices: 77 MB at K = 800); the patches of one chunk (N x chunk x P x 121 floats: 2.3 MB).
 
-That is the vectorised (`jax`) form, every backend's. On a CPU the same counts
+That is the vectorised (`jax`) form, every backend's. On a CPU the same variances
 come by default from a native kernel (services/planner/native, `planner.va_kernel`),
 a rollout at a time per thread, about three times faster there (docs/planner.md).
 """
