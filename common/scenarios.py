@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -28,6 +29,11 @@ class Obstacle:
     yaw: float = 0.0          # box orientation
     hidden: bool = False      # meant to stay unseen from the approach the scenario is built
                               # around (tests/test_scenarios.py, `vamppi reveal`)
+
+    def local(self, x: Any, y: Any) -> tuple[Any, Any]:
+        """World points in the obstacle's own frame (u along its yaw, v across); arrays ok."""
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        return (x - self.x) * c + (y - self.y) * s, -(x - self.x) * s + (y - self.y) * c
 
 
 @dataclass(frozen=True)
@@ -77,9 +83,7 @@ def _render(terrain: np.ndarray, res: float, obstacles: tuple[Obstacle, ...]) ->
         if ob.kind == "cylinder":
             inside = (xx - ob.x) ** 2 + (yy - ob.y) ** 2 <= ob.radius ** 2
         elif ob.kind == "box":
-            cy, sy = math.cos(ob.yaw), math.sin(ob.yaw)
-            u = (xx - ob.x) * cy + (yy - ob.y) * sy
-            v = -(xx - ob.x) * sy + (yy - ob.y) * cy
+            u, v = ob.local(xx, yy)
             inside = (np.abs(u) <= ob.half_x) & (np.abs(v) <= ob.half_y)
         else:
             raise ValueError(f"unknown obstacle kind {ob.kind!r}")

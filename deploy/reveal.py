@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.config import Config
+from common.geometry import bilinear
 from common.scenarios import Obstacle, Scenario
 from services.sensor import core as sensor
 
@@ -66,8 +67,7 @@ def surface_distance(ob: Obstacle, x: float, y: float) -> float:
     """Distance from (x, y) to the obstacle's footprint (0 inside)."""
     if ob.kind == "cylinder":
         return max(0.0, math.hypot(x - ob.x, y - ob.y) - ob.radius)
-    c, s = math.cos(ob.yaw), math.sin(ob.yaw)
-    u, w = (x - ob.x) * c + (y - ob.y) * s, -(x - ob.x) * s + (y - ob.y) * c
+    u, w = ob.local(x, y)
     return math.hypot(max(0.0, abs(u) - ob.half_x), max(0.0, abs(w) - ob.half_y))
 
 
@@ -91,20 +91,17 @@ def returns_on(points: np.ndarray, ob: Obstacle, margin: float = 0.15) -> int:
     if ob.kind == "cylinder":
         d = np.hypot(points[:, 0] - ob.x, points[:, 1] - ob.y) - ob.radius
     else:
-        c, s = math.cos(ob.yaw), math.sin(ob.yaw)
-        u = (points[:, 0] - ob.x) * c + (points[:, 1] - ob.y) * s
-        w = -(points[:, 0] - ob.x) * s + (points[:, 1] - ob.y) * c
+        u, w = ob.local(points[:, 0], points[:, 1])
         d = np.maximum(np.abs(u) - ob.half_x, np.abs(w) - ob.half_y)
     return int((d <= margin).sum())
 
 
 def seen_from(cam: sensor.CameraParams, scn: Scenario, x: float, y: float, yaw: float
               ) -> np.ndarray:
-    """World points (M, 3) of the ground-truth camera's returns from a vehicle pose."""
-    col = min(max(int(x / scn.resolution), 0), scn.heightmap.shape[1] - 1)
-    row = min(max(int(y / scn.resolution), 0), scn.heightmap.shape[0] - 1)
-    depth, pos, rot = sensor.render(cam, scn.heightmap, scn.origin, scn.resolution,
-                                    x, y, float(scn.terrain[row, col]), yaw)
+    """World points (M, 3) of the ground-truth camera's returns from a vehicle pose (on the
+    bare terrain, as the plant places it)."""
+    z = float(bilinear(scn.terrain, np.float64(x), np.float64(y), scn.origin, scn.resolution))
+    depth, pos, rot = sensor.render(cam, scn.heightmap, scn.origin, scn.resolution, x, y, z, yaw)
     return sensor.return_points(cam, depth, pos, rot)
 
 
