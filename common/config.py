@@ -146,6 +146,7 @@ class PlannerConfig:
     visibility_max_m: float = _rng(0.0, lo_open=True)
     visibility_height_m: float = _rng(0.0)
     visibility_lag_steps: int = _rng(1, 1000)
+    visibility_stop_decel_mps2: float = _rng(0.0)
     count_value: float = _rng(0.0)
     splat_size: int = _rng(1, 99)
     splat_sigma_cells: float = _rng(0.0, lo_open=True)

@@ -45,6 +45,16 @@ def reference_visibility(vp, mean, state, rows, cols, res):
     return vis
 
 
+def reference_counted(vp, state, vis):
+    """Of the visible points (rays, points), those that count: at least the float64
+    stopping distance V dt + V^2 / 2a from the camera (all of them when a = 0)."""
+    if vp.stop_decel_mps2 <= 0.0:
+        return vis
+    v = math.hypot(float(state[0]), float(state[1]))
+    stop = v * vp.react_s + v * v / (2.0 * vp.stop_decel_mps2)
+    return vis & (np.linspace(vp.ray_min_m, vp.ray_max_m, vp.points) >= stop)[None, :]
+
+
 def reference_decay(vp, variance, seen, rows, cols):
     """Dense float64: count maps of poses 0 .. i-lag, a full 9 x 9 convolution, the decay,
     read at step i's queries. `seen[i]` = (rows, cols) of pose i's visible points."""
@@ -79,6 +89,7 @@ def random_problem(rng, n=120, steps=12):
     psi = np.cumsum(rng.normal(size=steps) * 0.15) + rng.uniform(-0.3, 0.3)
     states = np.zeros((steps, 6), np.float32)
     states[:, 3], states[:, 4], states[:, 5] = x, y, psi
+    states[:, 0], states[:, 1] = rng.uniform(0.0, 9.0, steps), rng.normal(size=steps) * 0.3
     rows = rng.integers(1, n - 1, (steps, 8)).astype(np.int32)
     cols = rng.integers(1, n - 1, (steps, 8)).astype(np.int32)
     rows[:, :4] = np.clip((y[:, None] / 0.2 + rng.integers(-20, 20, (steps, 4))), 1, n - 2)
@@ -107,11 +118,16 @@ def float64_cells(vp, st):
     return np.floor(py / 0.2).astype(int), np.floor(px / 0.2).astype(int), ambiguous
 
 
-@pytest.mark.parametrize("lag", [1, 4])
-def test_decayed_variance_matches_the_dense_float64_reference(rng, lag):
+# (lag, stop deceleration): the paper's causality, a longer lag, points counted only
+# beyond the stopping distance
+CAUSALITY = [(1, 0.0), (4, 0.0), (1, 3.6)]
+
+
+@pytest.mark.parametrize(("lag", "decel"), CAUSALITY)
+def test_decayed_variance_matches_the_dense_float64_reference(rng, lag, decel):
     """The vectorised JAX form: every ray point's cell and visibility checked, then the
     decayed variance at every query against the dense float64 computation."""
-    vp = dataclasses.replace(VP, lag_steps=lag, backend="jax")
+    vp = dataclasses.replace(VP, lag_steps=lag, stop_decel_mps2=decel, backend="jax")
     mean, variance, states, got, rows, cols = solve_random_problem(vp, rng)
     seen = []
     for st in states:
@@ -125,7 +141,8 @@ def test_decayed_variance_matches_the_dense_float64_reference(rng, lag):
         ref_vis = reference_visibility(vp, mean.astype(np.float64), st.astype(np.float64),
                                        k_row, k_col, 0.2)
         np.testing.assert_array_equal(k_vis, ref_vis)
-        seen.append((k_row[k_vis], k_col[k_vis]))
+        counted = reference_counted(vp, st, k_vis)
+        seen.append((k_row[counted], k_col[counted]))
     ref = reference_decay(vp, variance.astype(np.float64), seen, rows, cols)
     np.testing.assert_allclose(got[:lag], variance[rows[:lag], cols[:lag]])   # nothing seen yet
     assert (ref < variance[rows, cols] * 0.999).mean() > 0.2          # the test has teeth
@@ -133,13 +150,13 @@ def test_decayed_variance_matches_the_dense_float64_reference(rng, lag):
 
 
 @pytest.mark.skipif(not native.available(), reason="the native kernel does not build here")
-@pytest.mark.parametrize("lag", [1, 4])
-def test_native_kernel_matches_the_dense_float64_reference(rng, lag):
+@pytest.mark.parametrize(("lag", "decel"), CAUSALITY)
+def test_native_kernel_matches_the_dense_float64_reference(rng, lag, decel):
     """The C++ kernel (services/planner/native): its cells are not exposed, so the reference
     is built wholly in float64 (cells, visibility, counts, splat, decay); queries within the
     splat's reach of a ray point that lies within float32 rounding of a cell boundary are
     left out (and of the rest of its ray, where the two cells differ in blocking it)."""
-    vp = dataclasses.replace(VP, lag_steps=lag, backend="native")
+    vp = dataclasses.replace(VP, lag_steps=lag, stop_decel_mps2=decel, backend="native")
     mean, variance, states, got, rows, cols = solve_random_problem(vp, rng)
     seen, doubtful = [], np.zeros(mean.shape, bool)
     half = vp.splat_size // 2
@@ -147,7 +164,8 @@ def test_native_kernel_matches_the_dense_float64_reference(rng, lag):
         f_row, f_col, ambiguous = float64_cells(vp, st)
         vis = reference_visibility(vp, mean.astype(np.float64), st.astype(np.float64),
                                    f_row, f_col, 0.2)
-        seen.append((f_row[vis], f_col[vis]))
+        counted = reference_counted(vp, st, vis)
+        seen.append((f_row[counted], f_col[counted]))
         px, py = float64_ray_points(vp, st.astype(np.float64), 0.2)
         ground = mean[int(st[4] / 0.2), int(st[3] / 0.2)] + vp.height_m
         for r, k in np.argwhere(ambiguous):
@@ -275,7 +293,8 @@ def test_native_kernel_clips_cells_off_the_map_like_the_jax_form(rng):
     w = offset_kernels(VP, OFFSETS)
     with pytest.raises(Exception, match="inconsistent shapes"):
         np.asarray(native.va_variance(mean, variance, jnp.zeros(2), jnp.asarray(states),
-                                      jnp.asarray(rows), jnp.asarray(cols), OFFSETS[:3],
+                                      jnp.zeros((2, 6), jnp.int32), jnp.asarray(rows),
+                                      jnp.asarray(cols), OFFSETS[:3],
                                       VP.ray_grid(), w, resolution=0.2, height=1.0, gamma=0.3,
                                       rays=VP.rays, points=VP.points, lag=1, pad=5,
                                       n_threads=2))

@@ -15,7 +15,10 @@ makes uncertainty shrink).
 Causality: the variance the trajectory meets at step i uses only the points
 seen from poses 0 .. i-lag; lag = 1 is the paper's remark (what it could have
 seen before), a larger lag makes a point seen count only once there is time to
-act on it (`planner.visibility_lag_steps`, docs/planner.md). A scan over the
+act on it (`planner.visibility_lag_steps`, docs/planner.md). Optionally
+(`planner.visibility_stop_decel_mps2`, ours) a point counts only when it lies
+beyond the distance the pose needs to stop; nearer points still block their
+rays. A scan over the
 horizon carries a raw (unsplatted) count map: step i adds pose i-lag's visible
 points, then copies the 11 x 11 patch of raw counts around each of step i's
 footprint cells; one matmul after the horizon turns the patches into splatted
@@ -58,6 +61,8 @@ class VisibilityParams:
     gamma: float               # 0.3 (Table II)
     mount_forward_m: float     # rays start at the camera
     lag_steps: int             # step i meets what poses 0 .. i - lag saw (1: the paper's)
+    stop_decel_mps2: float     # points nearer than V dt + V^2 / 2a do not count; 0 = off
+    react_s: float             # dt of that stopping distance (one control tick)
     chunk: int                 # trajectories per chunk (memory bound); 0 = auto
     backend: str               # auto | jax | native (services/planner/native)
     threads: int               # native kernel threads; 0 = this process's cores
@@ -68,16 +73,19 @@ class VisibilityParams:
         return cls(p.visibility_rays, p.visibility_points, p.visibility_min_m,
                    p.visibility_max_m, math.radians(cfg.sensor.hfov_deg), p.visibility_height_m,
                    p.count_value, p.splat_size, p.splat_sigma_cells, p.decay_gamma,
-                   cfg.sensor.mount_forward_m, p.visibility_lag_steps, p.va_chunk,
-                   p.va_kernel, p.va_threads)
+                   cfg.sensor.mount_forward_m, p.visibility_lag_steps,
+                   p.visibility_stop_decel_mps2, p.dt_s, p.va_chunk, p.va_kernel, p.va_threads)
 
     def ray_grid(self) -> np.ndarray:
         """Body-frame offsets (rays * points, 2) of the ray points from the CG."""
         ang = np.linspace(-self.fov_rad / 2, self.fov_rad / 2, self.rays)
-        rng = np.linspace(self.ray_min_m, self.ray_max_m, self.points)
-        a, r = np.meshgrid(ang, rng, indexing="ij")            # (rays, points)
+        a, r = np.meshgrid(ang, self.ranges(), indexing="ij")            # (rays, points)
         pts = np.stack([self.mount_forward_m + r * np.cos(a), r * np.sin(a)], axis=-1)
         return pts.reshape(-1, 2)
+
+    def ranges(self) -> np.ndarray:
+        """Distance (points,) of a ray's points from the camera."""
+        return np.linspace(self.ray_min_m, self.ray_max_m, self.points)
 
     def kernel(self) -> np.ndarray:
         """G of Eq. gaussian, (size, size), 1/(2 pi s^2) exp(-(x^2 + y^2) / 2 s^2)."""
@@ -126,6 +134,18 @@ def visible_points(vp: VisibilityParams, mean: Any, origin: Any, resolution: flo
     return row, col, before & inside
 
 
+def uncounted_points(vp: VisibilityParams, states: Any) -> Any:
+    """How many of each ray's nearest points do not count, int32 (...) for poses
+    `states` (..., 6): those nearer the camera than the distance to stop from the
+    pose's speed, V dt + V^2 / (2 a) (`stop_decel_mps2` a; 0 = off: none)."""
+    if vp.stop_decel_mps2 <= 0.0:
+        return jnp.zeros(states.shape[:-1], jnp.int32)
+    v = jnp.hypot(states[..., S.V], states[..., S.v])
+    stop = v * vp.react_s + v * v / (2.0 * vp.stop_decel_mps2)
+    ranges = jnp.asarray(vp.ranges(), jnp.float32)
+    return jnp.sum(ranges < stop[..., None], axis=-1).astype(jnp.int32)
+
+
 def offset_kernels(vp: VisibilityParams, offsets: tuple[tuple[int, int], ...]) -> np.ndarray:
     """(S*S, len(offsets)) matrix: a patch of S = splat_size + 2 max|offset| raw counts
     around a footprint cell, times column k, is the splatted count at cell + offsets[k]."""
@@ -147,7 +167,8 @@ def batched_decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, ori
     states (K, N+1, 6); rows/cols (K, N+1, P) int, the footprint points' cells
     (at least `max|offset|` inside the map); returns (K, N+1, len(offsets) * P),
     offset-major: block k is the cells rows + offsets[k][0], cols + offsets[k][1].
-    Step i sees the points of poses 0 .. i-lag only (steps before lag: the prior).
+    Step i sees the points of poses 0 .. i-lag only (steps before lag: the prior);
+    of each ray, the points before `uncounted_points` block it but do not count.
 
     The visible points of poses 0 .. N-lag are found at once, vectorised over K and
     N. Then raw count maps (visible points per cell, unsplatted; `chunk`
@@ -169,10 +190,11 @@ def batched_decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, ori
     weights = offset_kernels(vp, offsets) * vp.count_value
     lag = vp.lag_steps
     n_steps = rows.shape[1] - 1
+    skip = uncounted_points(vp, states)                          # (K, N+1)
     # the same in C++ on a CPU (its raw counts are uint16: at most T * rays * points a cell)
     if (lag <= n_steps and rows.shape[1] * vp.rays * vp.points < 2 ** 16
             and native.use_native(vp.backend)):
-        return native.va_variance(mean, variance, origin, states, rows, cols, offsets,
+        return native.va_variance(mean, variance, origin, states, skip, rows, cols, offsets,
                                   vp.ray_grid(), weights, resolution=resolution,
                                   height=vp.height_m, gamma=vp.gamma, rays=vp.rays,
                                   points=vp.points, lag=lag, pad=pad,
@@ -191,6 +213,8 @@ def batched_decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, ori
 
     # poses 0 .. N-lag, read at steps lag .. N
     row, col, vis = visible_points(vp, mean, origin, resolution, states[:, :n_steps - lag + 1])
+    k_pt = jnp.tile(jnp.arange(vp.points), vp.rays)                # point index along its ray
+    vis = vis & (k_pt >= skip[:, :n_steps - lag + 1, None])
     flat = jnp.where(vis, (row + pad) * wp + col + pad, hp * wp)   # unseen: dropped
 
     chunk = vp.chunk or (8 if jax.default_backend() == "cpu" else 256)

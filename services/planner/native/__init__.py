@@ -132,18 +132,20 @@ def threads(requested: int) -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def va_variance(mean: Any, variance: Any, origin: Any, states: Any, rows: Any, cols: Any,
+def va_variance(mean: Any, variance: Any, origin: Any, states: Any, skip: Any, rows: Any,
+                cols: Any,
                 offsets: tuple[tuple[int, int], ...], grid: np.ndarray, weights: np.ndarray, *,
                 resolution: float, height: float, gamma: float, rays: int, points: int,
                 lag: int, pad: int, n_threads: int) -> Any:
     """The variance (K, T, Q * P) each trajectory meets at its query cells: the map's
-    variance times exp(-gamma C), C the splatted counts; see va_counts.cc."""
+    variance times exp(-gamma C), C the splatted counts; skip (K, T): how many of each
+    ray's nearest points do not count (they still block); see va_counts.cc."""
     k, t, p = rows.shape
     out = jax.ShapeDtypeStruct((k, t, weights.shape[1] * p), jnp.float32)
     call = jax.ffi.ffi_call(_register(), out, vmap_method="sequential")
     return call(jnp.asarray(mean, jnp.float32), jnp.asarray(variance, jnp.float32),
                 jnp.asarray(origin, jnp.float32), jnp.asarray(states, jnp.float32),
-                rows.astype(jnp.int32), cols.astype(jnp.int32),
+                jnp.asarray(skip, jnp.int32), rows.astype(jnp.int32), cols.astype(jnp.int32),
                 jnp.asarray(offsets, jnp.int32), jnp.asarray(grid, jnp.float32),
                 jnp.asarray(weights, jnp.float32),
                 resolution=np.float32(resolution), height=np.float32(height),

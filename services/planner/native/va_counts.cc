@@ -8,7 +8,8 @@
 // Gaussian splat centred on the Q query cells, c folded in) gives the Q
 // splatted counts C, and the variance met there is the map's variance at the
 // query cell times exp(-gamma C). Each ray is marched from its nearest point and
-// stops at its first blocker, which is itself seen. The visited cells are set
+// stops at its first blocker, which is itself seen; a pose's `skip` nearest points
+// of every ray block it but do not count (`planner.visibility_stop_decel_mps2`). The visited cells are set
 // back to zero after each trajectory, so one map per thread serves every
 // trajectory.
 //
@@ -20,7 +21,7 @@
 //
 // Inputs (the handler checks their shapes agree and returns an error if not):
 //   mean, variance (H, W) f32, origin (2,) f32, states (K, T, 6) f32 (T = N + 1;
-//   X, Y, PSI at 3, 4, 5), rows, cols (K, T, P) i32 the footprint points' cells
+//   X, Y, PSI at 3, 4, 5), skip (K, T) i32 the uncounted points per ray, rows, cols (K, T, P) i32 the footprint points' cells
 //   (unclipped: the query cells are clipped to the map, the patches `reach` inside
 //   it, as the JAX form does), offsets (Q, 2) i32 the query cells around each
 //   footprint cell, grid (M, 2) f32 body offsets of the ray points, ray-major,
@@ -50,6 +51,7 @@ struct Problem {
   int64_t h, w;
   float ox, oy, res, height;
   const float* states;
+  const int32_t* skip;
   int64_t t_len;
   const int32_t* rows;
   const int32_t* cols;
@@ -91,7 +93,8 @@ inline float exp_nonpositive(float x) {
 // to `cells` (for the clean-up). A ray's cells are computed together (vector code), then
 // walked to its first blocker; the count is added as the cell's height is read (the two
 // maps' cache misses overlap).
-void add_visible(const Problem& p, const float* s, uint16_t* map, std::vector<int32_t>& cells) {
+void add_visible(const Problem& p, const float* s, int32_t skip, uint16_t* map,
+                 std::vector<int32_t>& cells) {
   const float x = s[kX], y = s[kY];
   const float c = std::cos(s[kPsi]), sn = std::sin(s[kPsi]);
   const int64_t wp = p.w + 2 * p.pad;
@@ -115,9 +118,11 @@ void add_visible(const Problem& p, const float* s, uint16_t* map, std::vector<in
       // off the map: blocks the ray and is not seen
       if (!(fr[k] >= 0.0f && fr[k] < fh && fc[k] >= 0.0f && fc[k] < fw)) break;
       const int64_t row = static_cast<int64_t>(fr[k]), col = static_cast<int64_t>(fc[k]);
-      const int32_t cell = static_cast<int32_t>((row + p.pad) * wp + col + p.pad);
-      ++map[cell];
-      cells.push_back(cell);
+      if (k >= skip) {   // nearer points block but do not count
+        const int32_t cell = static_cast<int32_t>((row + p.pad) * wp + col + p.pad);
+        ++map[cell];
+        cells.push_back(cell);
+      }
       if (p.mean[row * p.w + col] > threshold) break;  // the first blocker is seen
     }
   }
@@ -134,6 +139,7 @@ void trajectories(const Problem& p, int64_t k0, int64_t k1) {
   std::vector<float> patch(static_cast<size_t>(area)), prior(static_cast<size_t>(width));
   for (int64_t k = k0; k < k1; ++k) {
     const float* st = p.states + k * p.t_len * kStateDim;
+    const int32_t* skip = p.skip + k * p.t_len;
     const int32_t* rows = p.rows + k * p.t_len * p.n_pts;
     const int32_t* cols = p.cols + k * p.t_len * p.n_pts;
     float* out = p.out + k * p.t_len * width;
@@ -154,7 +160,8 @@ void trajectories(const Problem& p, int64_t k0, int64_t k1) {
         std::copy(prior.begin(), prior.end(), oi);
         continue;
       }
-      add_visible(p, st + (i - p.lag) * kStateDim, map.data(), cells);  // poses 0 .. i - lag
+      // poses 0 .. i - lag
+      add_visible(p, st + (i - p.lag) * kStateDim, skip[i - p.lag], map.data(), cells);
       for (int64_t q = 0; q < p.n_pts; ++q) {
         // the patch around the footprint cell starts at the cell itself in padded coordinates
         const int64_t r0 = std::clamp<int64_t>(ri[q], p.reach, p.h - 1 - p.reach);
@@ -183,16 +190,17 @@ void trajectories(const Problem& p, int64_t k0, int64_t k1) {
 
 ffi::Error VaCountsImpl(ffi::Buffer<ffi::F32> mean, ffi::Buffer<ffi::F32> variance,
                         ffi::Buffer<ffi::F32> origin, ffi::Buffer<ffi::F32> states,
-                        ffi::Buffer<ffi::S32> rows, ffi::Buffer<ffi::S32> cols,
+                        ffi::Buffer<ffi::S32> skip, ffi::Buffer<ffi::S32> rows, ffi::Buffer<ffi::S32> cols,
                         ffi::Buffer<ffi::S32> offsets, ffi::Buffer<ffi::F32> grid,
                         ffi::Buffer<ffi::F32> weights, ffi::ResultBuffer<ffi::F32> out,
                         float resolution, float height, float gamma, int64_t rays,
                         int64_t points, int64_t lag, int64_t pad, int64_t threads) {
   auto md = mean.dimensions(), vd = variance.dimensions(), sd = states.dimensions(),
-       rd = rows.dimensions(), cd = cols.dimensions(), od = offsets.dimensions(),
+       kd = skip.dimensions(), rd = rows.dimensions(), cd = cols.dimensions(), od = offsets.dimensions(),
        wd = weights.dimensions();
   if (md.size() != 2 || vd.size() != 2 || vd[0] != md[0] || vd[1] != md[1] ||
-      sd.size() != 3 || sd[2] != kStateDim || rd.size() != 3 || rd[0] != sd[0] ||
+      sd.size() != 3 || sd[2] != kStateDim || kd.size() != 2 || kd[0] != sd[0] ||
+      kd[1] != sd[1] || rd.size() != 3 || rd[0] != sd[0] ||
       rd[1] != sd[1] || cd.size() != 3 || cd[0] != rd[0] || cd[1] != rd[1] ||
       cd[2] != rd[2] || wd.size() != 2 || od.size() != 2 || od[1] != 2 || od[0] != wd[1] ||
       grid.element_count() != 2 * rays * points || origin.element_count() != 2) {
@@ -222,7 +230,7 @@ ffi::Error VaCountsImpl(ffi::Buffer<ffi::F32> mean, ffi::Buffer<ffi::F32> varian
     for (int64_t q = 0; q < queries; ++q) wt[q * area + e] = weights.typed_data()[e * queries + q];
   }
   Problem p{mean.typed_data(), variance.typed_data(), md[0], md[1], o[0], o[1], resolution,
-            height, states.typed_data(), sd[1], rows.typed_data(), cols.typed_data(), rd[2],
+            height, states.typed_data(), skip.typed_data(), sd[1], rows.typed_data(), cols.typed_data(), rd[2],
             offsets.typed_data(), reach, gx.data(), gy.data(), rays, points, wt.data(), size,
             queries, lag, pad, gamma, out->typed_data()};
   const int64_t k_traj = sd[0];
@@ -244,6 +252,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(VaCounts, VaCountsImpl,
                                   .Arg<ffi::Buffer<ffi::F32>>()   // variance
                                   .Arg<ffi::Buffer<ffi::F32>>()   // origin
                                   .Arg<ffi::Buffer<ffi::F32>>()   // states
+                                  .Arg<ffi::Buffer<ffi::S32>>()   // skip
                                   .Arg<ffi::Buffer<ffi::S32>>()   // rows
                                   .Arg<ffi::Buffer<ffi::S32>>()   // cols
                                   .Arg<ffi::Buffer<ffi::S32>>()   // offsets
