@@ -305,6 +305,9 @@ def cmd_reveal(args: argparse.Namespace, cfg: Config) -> int:
         path = path / "runs.jsonl"
     if not path.exists():
         raise FileNotFoundError(f"no such file: {path}")
+    saved = path.parent / "config.toml"            # the experiment's own configuration
+    if args.config is None and saved.exists():
+        cfg = load_config(saved, overrides_from_args(args))
     runs = [r for r in read_runs(path)
             if args.only is None or r["controller"] in args.only.split(",")]
     rows = reveal_runs(cfg, runs, "all" if args.all_obstacles else "hidden")

@@ -11,6 +11,9 @@ Output directory:
                  where it stopped (a torn last line is ignored); each record
                  carries the configuration's digest, and resuming with another
                  configuration is refused
+  config.toml    the configuration (every parameter; the per-run keys as given):
+                 `--config DIR/config.toml` resumes with it, `vamppi reveal DIR`
+                 reads it
   summary.json   per scenario/controller/samples: counts of each outcome and the
                  time to goal over successful runs
   summary.md     the same as a markdown table, the paper's figures beside ours
@@ -30,7 +33,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from common.config import Config
+from common.config import Config, config_toml
 from deploy.runner import Cores, run_episode
 from services.plant.core import OUTCOMES
 
@@ -179,6 +182,9 @@ def experiment(cfg: Config, scenarios: list[str], controllers: list[str], sample
     if any("config_digest" not in r for r in existing):
         log.warning("%s: runs without a config digest (older records) are taken as this "
                     "configuration's", runs_path)
+    # the configuration beside its runs: `--config DIR/config.toml` resumes it, and
+    # `vamppi reveal DIR` reads it
+    (out / "config.toml").write_text(config_toml(cfg))
     done = {tuple(r[k] for k in KEY_FIELDS) for r in existing}
     # round robin: every combination gets its i-th run before any gets its (i+1)-th,
     # so an experiment stopped early is still balanced

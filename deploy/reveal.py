@@ -10,9 +10,9 @@ seen with a gap larger than the stopping distance could have been avoided by
 braking; a collision after such a sighting is the planner's, not the
 occlusion's (docs/results.md).
 
-The camera, the vehicle and the control period are the current configuration's
-(a run record keeps only its configuration's digest): pass the experiment's own
-`--set` overrides where they touch them.
+The camera, the vehicle and the control period are the experiment's own
+(`DIR/config.toml`, which the experiment writes; `--config` or an older
+directory without it: the given configuration).
 
 The path of a run record is 10 Hz (t, X, Y, V) without heading; the heading
 of sample i is the direction from sample i-1 to i (samples below 0.2 m/s are

@@ -4,7 +4,8 @@ import json
 import subprocess
 import sys
 
-from deploy.experiment import KEY_FIELDS, read_runs, summarize
+from common.config import load_config
+from deploy.experiment import KEY_FIELDS, config_digest, read_runs, summarize
 from services.plant.core import OUTCOMES
 
 SETTINGS = ["--set", "episode.timeout_s=1.5", "--set", "planner.horizon=40"]
@@ -45,6 +46,12 @@ def test_small_experiment_records_are_complete_and_resumable(tmp_path):
     for s in summary:
         assert s["runs"] == 2 and sum(s[o] for o in OUTCOMES) == 2
     assert len({x["config_digest"] for x in runs}) == 1
+    # the configuration beside the runs resumes them (nothing left to do, nothing added)
+    r = run(out, 2, ["--no-plots", "--config", str(out / "config.toml")])
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert read_runs(out / "runs.jsonl") == runs
+    saved = load_config(out / "config.toml")
+    assert saved.episode.timeout_s == 1.5 and config_digest(saved) == runs[0]["config_digest"]
     other = run(out, 2, ["--no-plots", "--set", "planner.temperature=2.0"])
     assert other.returncode == 2 and "another configuration" in other.stderr
     assert read_runs(out / "runs.jsonl") == runs                  # nothing touched
