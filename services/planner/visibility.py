@@ -18,14 +18,14 @@ seen before), a larger lag makes a point seen count only once there is time to
 act on it (`planner.visibility_lag_steps`, docs/planner.md). Optionally
 (`planner.visibility_stop_decel_mps2`, ours) a point counts only when it lies
 beyond the distance the pose needs to stop; nearer points still block their
-rays. A scan over the
-horizon carries a raw (unsplatted) count map: step i adds pose i-lag's visible
-points, then copies the 11 x 11 patch of raw counts around each of step i's
-footprint cells; one matmul after the horizon turns the patches into splatted
-counts at the five cells. Memory: one padded map per trajectory processed side
-by side (`va_chunk`), shared by the trajectories in turn and cleaned after
-each, never K full maps; the visible points of every pose (K x N x 600
-indices: 77 MB at K = 800); the patches of one chunk (N x chunk x P x 121 floats: 2.3 MB).
+rays. A scan over the horizon carries a raw (unsplatted) count map: step i
+adds pose i-lag's visible points, then copies the 11 x 11 patch of raw counts
+around each of step i's footprint cells; one matmul after the horizon turns
+the patches into splatted counts at the five cells. Memory: one padded map per
+trajectory processed side by side (`va_chunk`), shared by the trajectories in
+turn and cleaned after each, never K full maps; the visible points of every
+pose (K x N x 600 indices: 77 MB at K = 800); the patches of one chunk (N x
+chunk x P x 121 floats: 2.3 MB).
 
 That is the vectorised (`jax`) form, every backend's. On a CPU the same variances
 come by default from a native kernel (services/planner/native, `planner.va_kernel`),
@@ -79,7 +79,7 @@ class VisibilityParams:
     def ray_grid(self) -> np.ndarray:
         """Body-frame offsets (rays * points, 2) of the ray points from the CG."""
         ang = np.linspace(-self.fov_rad / 2, self.fov_rad / 2, self.rays)
-        a, r = np.meshgrid(ang, self.ranges(), indexing="ij")            # (rays, points)
+        a, r = np.meshgrid(ang, self.ranges(), indexing="ij")    # (rays, points)
         pts = np.stack([self.mount_forward_m + r * np.cos(a), r * np.sin(a)], axis=-1)
         return pts.reshape(-1, 2)
 

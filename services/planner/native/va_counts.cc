@@ -9,9 +9,9 @@
 // splatted counts C, and the variance met there is the map's variance at the
 // query cell times exp(-gamma C). Each ray is marched from its nearest point and
 // stops at its first blocker, which is itself seen; a pose's `skip` nearest points
-// of every ray block it but do not count (`planner.visibility_stop_decel_mps2`). The visited cells are set
-// back to zero after each trajectory, so one map per thread serves every
-// trajectory.
+// of every ray block it but do not count (`planner.visibility_stop_decel_mps2`).
+// The visited cells are set back to zero after each trajectory, so one map per
+// thread serves every trajectory.
 //
 // Why native: on XLA:CPU the vectorised form pays 3-4 ns per scatter and
 // gather element for 19 M ray points at K = 800 (docs/benchmarks.md); here each
@@ -20,12 +20,12 @@
 // the exponential are done here too (XLA:CPU spent some 30 ms on them at K = 800).
 //
 // Inputs (the handler checks their shapes agree and returns an error if not):
-//   mean, variance (H, W) f32, origin (2,) f32, states (K, T, 6) f32 (T = N + 1;
-//   X, Y, PSI at 3, 4, 5), skip (K, T) i32 the uncounted points per ray, rows, cols (K, T, P) i32 the footprint points' cells
-//   (unclipped: the query cells are clipped to the map, the patches `reach` inside
-//   it, as the JAX form does), offsets (Q, 2) i32 the query cells around each
-//   footprint cell, grid (M, 2) f32 body offsets of the ray points, ray-major,
-//   weights (S*S, Q) f32.
+//   mean, variance (H, W) f32, origin (2,) f32, states (K, T, 6) f32 (T = N + 1; X,
+//   Y, PSI at 3, 4, 5), skip (K, T) i32 the uncounted nearest points of each ray,
+//   rows, cols (K, T, P) i32 the footprint points' cells (unclipped: the query cells
+//   are clipped to the map, the patches `reach` inside it, as the JAX form does),
+//   offsets (Q, 2) i32 the query cells around each footprint cell, grid (M, 2) f32
+//   body offsets of the ray points, ray-major, weights (S*S, Q) f32.
 // Output: variance (K, T, Q * P) f32, query-major (block q = offsets[q]); steps
 // before `lag` meet the prior.
 
@@ -190,14 +190,15 @@ void trajectories(const Problem& p, int64_t k0, int64_t k1) {
 
 ffi::Error VaCountsImpl(ffi::Buffer<ffi::F32> mean, ffi::Buffer<ffi::F32> variance,
                         ffi::Buffer<ffi::F32> origin, ffi::Buffer<ffi::F32> states,
-                        ffi::Buffer<ffi::S32> skip, ffi::Buffer<ffi::S32> rows, ffi::Buffer<ffi::S32> cols,
+                        ffi::Buffer<ffi::S32> skip, ffi::Buffer<ffi::S32> rows,
+                        ffi::Buffer<ffi::S32> cols,
                         ffi::Buffer<ffi::S32> offsets, ffi::Buffer<ffi::F32> grid,
                         ffi::Buffer<ffi::F32> weights, ffi::ResultBuffer<ffi::F32> out,
                         float resolution, float height, float gamma, int64_t rays,
                         int64_t points, int64_t lag, int64_t pad, int64_t threads) {
   auto md = mean.dimensions(), vd = variance.dimensions(), sd = states.dimensions(),
-       kd = skip.dimensions(), rd = rows.dimensions(), cd = cols.dimensions(), od = offsets.dimensions(),
-       wd = weights.dimensions();
+       kd = skip.dimensions(), rd = rows.dimensions(), cd = cols.dimensions(),
+       od = offsets.dimensions(), wd = weights.dimensions();
   if (md.size() != 2 || vd.size() != 2 || vd[0] != md[0] || vd[1] != md[1] ||
       sd.size() != 3 || sd[2] != kStateDim || kd.size() != 2 || kd[0] != sd[0] ||
       kd[1] != sd[1] || rd.size() != 3 || rd[0] != sd[0] ||
@@ -230,9 +231,9 @@ ffi::Error VaCountsImpl(ffi::Buffer<ffi::F32> mean, ffi::Buffer<ffi::F32> varian
     for (int64_t q = 0; q < queries; ++q) wt[q * area + e] = weights.typed_data()[e * queries + q];
   }
   Problem p{mean.typed_data(), variance.typed_data(), md[0], md[1], o[0], o[1], resolution,
-            height, states.typed_data(), skip.typed_data(), sd[1], rows.typed_data(), cols.typed_data(), rd[2],
-            offsets.typed_data(), reach, gx.data(), gy.data(), rays, points, wt.data(), size,
-            queries, lag, pad, gamma, out->typed_data()};
+            height, states.typed_data(), skip.typed_data(), sd[1], rows.typed_data(),
+            cols.typed_data(), rd[2], offsets.typed_data(), reach, gx.data(), gy.data(), rays,
+            points, wt.data(), size, queries, lag, pad, gamma, out->typed_data()};
   const int64_t k_traj = sd[0];
   const int64_t n = std::max<int64_t>(1, std::min<int64_t>(threads, k_traj));
   std::vector<std::thread> pool;
