@@ -213,8 +213,9 @@ def batched_decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, ori
 
     # poses 0 .. N-lag, read at steps lag .. N
     row, col, vis = visible_points(vp, mean, origin, resolution, states[:, :n_steps - lag + 1])
-    k_pt = jnp.tile(jnp.arange(vp.points), vp.rays)                # point index along its ray
-    vis = vis & (k_pt >= skip[:, :n_steps - lag + 1, None])
+    if vp.stop_decel_mps2 > 0.0:                                   # nearer points: not counted
+        k_pt = jnp.tile(jnp.arange(vp.points), vp.rays)            # point index along its ray
+        vis = vis & (k_pt >= skip[:, :n_steps - lag + 1, None])
     flat = jnp.where(vis, (row + pad) * wp + col + pad, hp * wp)   # unseen: dropped
 
     chunk = vp.chunk or (8 if jax.default_backend() == "cpu" else 256)
