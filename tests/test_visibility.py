@@ -145,7 +145,8 @@ def test_decayed_variance_matches_the_dense_float64_reference(rng, lag, decel):
         seen.append((k_row[counted], k_col[counted]))
     ref = reference_decay(vp, variance.astype(np.float64), seen, rows, cols)
     np.testing.assert_allclose(got[:lag], variance[rows[:lag], cols[:lag]])   # nothing seen yet
-    assert (ref < variance[rows, cols] * 0.999).mean() > 0.2          # the test has teeth
+    # the test has teeth: many queries decayed (60 seeds: 32-70 %; one CI draw 19 %)
+    assert (ref < variance[rows, cols] * 0.999).mean() > 0.1
     np.testing.assert_allclose(got, ref, rtol=2e-4, atol=1e-6)
 
 
@@ -183,7 +184,7 @@ def test_native_kernel_matches_the_dense_float64_reference(rng, lag, decel):
     keep = ~doubtful[rows, cols]
     assert keep.mean() > 0.7
     np.testing.assert_allclose(got[:lag], variance[rows[:lag], cols[:lag]])   # nothing seen yet
-    assert (ref[keep] < variance[rows, cols][keep] * 0.999).mean() > 0.2   # the test has teeth
+    assert (ref[keep] < variance[rows, cols][keep] * 0.999).mean() > 0.1   # the test has teeth
     np.testing.assert_allclose(got[keep], ref[keep], rtol=2e-4, atol=1e-6)
 
 
