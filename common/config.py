@@ -154,6 +154,7 @@ class PlannerConfig:
     va_chunk: int = _rng(0, 1_000_000)
     va_kernel: str = _rng(choices=("auto", "jax", "native"))
     va_threads: int = _rng(0, 1024)
+    rollout_kernel: str = _rng(choices=("auto", "jax", "native"))
     surface_estimator: str = _rng(choices=("closed_form", "monte_carlo"))
     surface_samples: int = _rng(1, 1_000_000)
 

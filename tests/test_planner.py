@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from common.config import load_config
-from services.planner import mppi
+from services.planner import mppi, native
 from services.planner.costs import MapView, absorbing_crash, exceed_prob, rollout_cost
 from services.plant.dynamics import S, clamp_control, integrate
 
@@ -29,6 +29,38 @@ def test_rollout_matches_the_float64_model(rng):
         x = integrate(PP.vehicle, x, u, PP.dt, PP.substeps)
         u_prev = u
         np.testing.assert_allclose(np.asarray(states[i + 1, S.X:S.Y + 1]), x[S.X:S.Y + 1],
+                                   atol=5e-3)
+
+
+@pytest.mark.skipif(not native.available(), reason="the native kernels do not build here")
+@pytest.mark.parametrize("k", [1, 37])
+def test_native_rollouts_match_the_jax_form_and_the_float64_model(rng, k):
+    """rollout.cc against `rollout` vmapped (the same float32 arithmetic, so within
+    rounding) and against the plant's float64 model; K = 37 leaves a short last block of
+    vector lanes; from standstill to 10 m/s (the kinematic blend), controls past the
+    limits (the clamps), one thread or three (the same numbers)."""
+    x0 = np.array([rng.uniform(0, 10), rng.uniform(-0.5, 0.5), rng.uniform(-0.3, 0.3),
+                   40.0, 40.0, rng.uniform(-3, 3)], np.float32)
+    u0 = np.array([rng.uniform(-0.5, 0.5), rng.uniform(-6000, 5000)], np.float32)
+    controls = np.stack([rng.uniform(-0.8, 0.8, (k, PP.horizon)),
+                         rng.uniform(-8000, 7000, (k, PP.horizon))], -1).astype(np.float32)
+    model = native.model_vector(PP.vehicle, PP.limits)
+    got = [native.rollouts(model, x0, u0, controls, dt=PP.dt, substeps=PP.substeps,
+                           n_threads=n) for n in (1, 3)]
+    for a, b in zip(*got, strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    ref = jax.vmap(mppi.rollout, in_axes=(None, None, None, 0))(
+        PP, jnp.asarray(x0), jnp.asarray(u0), jnp.asarray(controls))
+    (states, applied, xdots), (s_ref, a_ref, x_ref) = got[0], ref
+    np.testing.assert_allclose(np.asarray(applied), np.asarray(a_ref), rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(states), np.asarray(s_ref), rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(np.asarray(xdots), np.asarray(x_ref), rtol=1e-3, atol=1e-3)
+    x, u_prev = x0.astype(np.float64), u0.astype(np.float64)
+    for i in range(PP.horizon):                       # the last sample, in float64
+        u = clamp_control(controls[-1, i].astype(np.float64), u_prev, PP.limits, PP.dt)
+        x = integrate(PP.vehicle, x, u, PP.dt, PP.substeps)
+        u_prev = u
+        np.testing.assert_allclose(np.asarray(states[-1, i + 1, S.X:S.Y + 1]), x[S.X:S.Y + 1],
                                    atol=5e-3)
 
 

@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 
 from common.config import Config, VehicleConfig
+from services.planner import native
 from services.planner.costs import OFFSETS, CostParams, MapView, footprint_cells, rollout_cost
 from services.planner.fastmath import FAST
 from services.planner.visibility import VisibilityParams, batched_decayed_variance
@@ -43,6 +44,8 @@ class PlannerParams:
     noise_correlation: float           # rho of the AR(1) noise along the horizon; 0 = white
     brake_samples: int                 # samples replaced by full braking (0: the paper's MPPI)
     rollouts_published: int
+    rollout_kernel: str                # auto | jax | native (services/planner/native)
+    threads: int                       # native kernels' threads; 0 = this process's cores
     vehicle: VehicleConfig
     limits: ControlLimits
     cost: CostParams
@@ -54,7 +57,8 @@ class PlannerParams:
         return cls(p.controller, p.samples, p.horizon, p.dt_s, p.substeps, p.iterations,
                    p.temperature, (p.noise_steer_rad, p.noise_force_n), p.noise_correlation,
                    min(p.brake_samples, p.samples - 1),
-                   min(p.rollouts_published, p.samples), cfg.vehicle,
+                   min(p.rollouts_published, p.samples), p.rollout_kernel, p.va_threads,
+                   cfg.vehicle,
                    ControlLimits.from_config(cfg.vehicle), CostParams.from_config(cfg),
                    VisibilityParams.from_config(cfg))
 
@@ -116,6 +120,18 @@ def rollout(params: PlannerParams, x0: jax.Array, u_prev: jax.Array, controls: j
     return jnp.concatenate([x0[None], xs]), us, xdots
 
 
+def rollouts(params: PlannerParams, x0: jax.Array, u_prev: jax.Array, controls: jax.Array
+             ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """`rollout` for K samples, controls (K, N, 2): states (K, N+1, 6), applied (K, N, 2),
+    dx/dt (K, N, 6). On a CPU by default the native kernel (rollout.cc: the same model
+    and arithmetic, W samples per vector instruction), else `rollout` vmapped."""
+    if native.use_native(params.rollout_kernel):
+        return native.rollouts(native.model_vector(params.vehicle, params.limits), x0, u_prev,
+                               controls, dt=params.dt, substeps=params.substeps,
+                               n_threads=native.threads(params.threads))
+    return jax.vmap(rollout, in_axes=(None, None, None, 0))(params, x0, u_prev, controls)
+
+
 def query_variance(params: PlannerParams, m: MapView, states: jax.Array) -> jax.Array:
     """The variance each rollout meets at its cost's query cells, (K, N+1, 5 P).
 
@@ -175,8 +191,7 @@ def _iteration(params: PlannerParams, state: PlannerState, x0, u_prev, goal, m: 
     if params.brake_samples:                          # samples 1 .. B: full braking
         candidates = candidates.at[1:1 + params.brake_samples].set(
             brake_sequences(params, state.nominal))
-    states, applied, xdots = jax.vmap(rollout, in_axes=(None, None, None, 0))(
-        params, x0, u_prev, candidates)
+    states, applied, xdots = rollouts(params, x0, u_prev, candidates)
 
     qvar = query_variance(params, m, states)
     terms = jax.vmap(rollout_cost, in_axes=(None, 0, 0, None, None, 0, 0))(
@@ -203,7 +218,7 @@ def _solve(params: PlannerParams, state: PlannerState, x0, u_prev, goal, mean, v
     info = None
     for _ in range(params.iterations):
         state, info = _iteration(params, state, x0, u_prev, goal, m)
-    states, applied, xdots = rollout(params, x0, u_prev, state.nominal)
+    states, applied, xdots = (a[0] for a in rollouts(params, x0, u_prev, state.nominal[None]))
     terms = rollout_cost(params.cost, states, xdots, goal, m,
                          query_variance(params, m, states[None])[0], state.key)
     xy, costs, j_min, j_mean = info

@@ -1,11 +1,15 @@
-"""The visibility-aware variance update as a native CPU kernel (va_counts.cc, XLA FFI).
+"""The planner's native CPU kernels (XLA FFI custom calls), one library:
 
-`planner.va_kernel` chooses: `jax` (the vectorised form of visibility.py, every
-backend), `native` (this kernel; a CPU backend only) or `auto` (native on a CPU
-when it builds, else jax). Both compute the same variances from the same float32
-cells; tests/test_visibility.py checks each against the dense float64 reference.
+- va_counts.cc, the visibility-aware variance update. `planner.va_kernel` chooses:
+  `jax` (the vectorised form of visibility.py, every backend), `native` (this
+  kernel; a CPU backend only) or `auto` (native on a CPU when it builds, else
+  jax). Both compute the same variances from the same float32 cells;
+  tests/test_visibility.py checks each against the dense float64 reference.
+- rollout.cc, the K rollouts of the prediction model (mppi.rollout vmapped),
+  chosen the same way by `planner.rollout_kernel`; tests/test_planner.py checks it
+  against the JAX form and the plant's float64 model.
 
-The library is compiled from its source with the system's C++ compiler
+The library is compiled from its sources with the system's C++ compiler
 (`$CXX`, else g++) against the XLA FFI headers that jaxlib ships, once per
 source and jaxlib version, next to the source; `make` builds it at install
 (`python -m services.planner.native`), and the first use builds it if it is
@@ -32,8 +36,8 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-SOURCE = Path(__file__).with_name("va_counts.cc")
-TARGET = "vamppi_va_counts"
+SOURCES = tuple(Path(__file__).with_name(n) for n in ("va_counts.cc", "rollout.cc"))
+TARGETS = {"vamppi_va_counts": "VaCounts", "vamppi_rollout": "Rollout"}   # FFI name: symbol
 # -march=native: the library is built on the machine that runs it (the digest names the
 # CPU); -ffp-contract=off: no fused multiply-adds, so the cells are JAX's float32 cells;
 # -fno-trapping-math: lets the cell loop (floor) be vector code, results unchanged
@@ -58,11 +62,12 @@ def _cpu() -> str:
 
 
 def library_path() -> Path:
-    """Where the library for this source and this jaxlib lives."""
+    """Where the library for these sources and this jaxlib lives."""
     import jaxlib
-    digest = hashlib.sha256(SOURCE.read_bytes() + jaxlib.__version__.encode()
-                            + " ".join(FLAGS).encode() + _cpu().encode()).hexdigest()[:12]
-    return SOURCE.with_name(f"_va_counts-{digest}.so")
+    digest = hashlib.sha256(b"".join(s.read_bytes() for s in SOURCES)
+                            + jaxlib.__version__.encode() + " ".join(FLAGS).encode()
+                            + _cpu().encode()).hexdigest()[:12]
+    return SOURCES[0].with_name(f"_native-{digest}.so")
 
 
 def build() -> Path:
@@ -75,7 +80,7 @@ def build() -> Path:
         raise NativeUnavailable("no C++ compiler (set CXX or install g++)")
     fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
     os.close(fd)
-    cmd = [cxx, *FLAGS, f"-I{jax.ffi.include_dir()}", str(SOURCE), "-o", tmp]
+    cmd = [cxx, *FLAGS, f"-I{jax.ffi.include_dir()}", *map(str, SOURCES), "-o", tmp]
     try:
         r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
         if r.returncode != 0:
@@ -84,38 +89,38 @@ def build() -> Path:
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
-    for old in out.parent.glob("_va_counts-*.so"):         # earlier sources' builds
-        if old != out:
+    for old in [*out.parent.glob("_native-*.so"), *out.parent.glob("_va_counts-*.so")]:
+        if old != out:                                      # earlier sources' builds
             old.unlink(missing_ok=True)
     return out
 
 
 @lru_cache(maxsize=1)
-def _register() -> str:
+def _register() -> None:
     lib = ctypes.cdll.LoadLibrary(str(build()))
-    jax.ffi.register_ffi_target(TARGET, jax.ffi.pycapsule(lib.VaCounts), platform="cpu")
-    return TARGET
+    for name, symbol in TARGETS.items():
+        jax.ffi.register_ffi_target(name, jax.ffi.pycapsule(getattr(lib, symbol)), platform="cpu")
 
 
 def available() -> bool:
-    """Whether the kernel can run here: a CPU backend and a library that builds and loads."""
+    """Whether the kernels can run here: a CPU backend and a library that builds and loads."""
     if jax.default_backend() != "cpu":
         return False
     try:
         _register()
     except (NativeUnavailable, OSError) as e:
-        log.warning("native visibility kernel unavailable, using the JAX form: %s", e)
+        log.warning("native kernels unavailable, using the JAX forms: %s", e)
         return False
     return True
 
 
 def use_native(kernel: str) -> bool:
-    """`planner.va_kernel` resolved on this machine."""
+    """`planner.va_kernel` or `planner.rollout_kernel` resolved on this machine."""
     if kernel == "jax":
         return False
     if kernel == "native":
         if jax.default_backend() != "cpu":
-            raise NativeUnavailable(f"planner.va_kernel = native needs a CPU backend, "
+            raise NativeUnavailable(f"a native planner kernel needs a CPU backend, "
                                     f"this one is {jax.default_backend()}")
         _register()
         return True
@@ -123,7 +128,7 @@ def use_native(kernel: str) -> bool:
 
 
 def threads(requested: int) -> int:
-    """`planner.va_threads`: 0 = the cores this process may run on."""
+    """`planner.va_threads` (both kernels): 0 = the cores this process may run on."""
     if requested > 0:
         return requested
     try:
@@ -142,7 +147,8 @@ def va_variance(mean: Any, variance: Any, origin: Any, states: Any, skip: Any, r
     ray's nearest points do not count (they still block); see va_counts.cc."""
     k, t, p = rows.shape
     out = jax.ShapeDtypeStruct((k, t, weights.shape[1] * p), jnp.float32)
-    call = jax.ffi.ffi_call(_register(), out, vmap_method="sequential")
+    _register()
+    call = jax.ffi.ffi_call("vamppi_va_counts", out, vmap_method="sequential")
     return call(jnp.asarray(mean, jnp.float32), jnp.asarray(variance, jnp.float32),
                 jnp.asarray(origin, jnp.float32), jnp.asarray(states, jnp.float32),
                 jnp.asarray(skip, jnp.int32), rows.astype(jnp.int32), cols.astype(jnp.int32),
@@ -151,3 +157,33 @@ def va_variance(mean: Any, variance: Any, origin: Any, states: Any, skip: Any, r
                 resolution=np.float32(resolution), height=np.float32(height),
                 gamma=np.float32(gamma), rays=np.int64(rays), points=np.int64(points),
                 lag=np.int64(lag), pad=np.int64(pad), threads=np.int64(n_threads))
+
+
+# rollout.cc's `Model`, in its order: the vehicle's fields, then the control limits
+MODEL_FIELDS = ("mass_kg", "lf_m", "lr_m", "track_m", "pacejka_b", "pacejka_c", "pacejka_d",
+                "pacejka_e", "drag_coefficient", "frontal_area_m2", "air_density",
+                "rolling_coefficient", "gravity", "cg_height_m", "yaw_inertia_kgm2",
+                "kinematic_below_mps", "dynamic_above_mps", "kinematic_tau_s",
+                "slip_speed_floor_mps", "brake_speed_eps_mps")
+
+
+def model_vector(vehicle: Any, limits: Any) -> np.ndarray:
+    """The (26,) float32 parameters rollout.cc reads: MODEL_FIELDS of the VehicleConfig,
+    then the ControlLimits lo, hi and rate (delta, f_xt each)."""
+    return np.asarray([getattr(vehicle, f) for f in MODEL_FIELDS]
+                      + [*limits.lo, *limits.hi, *limits.rate], np.float32)
+
+
+def rollouts(model: np.ndarray, x0: Any, u_prev: Any, controls: Any, *, dt: float,
+             substeps: int, n_threads: int) -> tuple[Any, Any, Any]:
+    """K rollouts of the prediction model (rollout.cc): controls (K, N, 2) -> states
+    (K, N+1, 6), applied controls (K, N, 2), dx/dt (K, N, 6), as mppi.rollout vmapped."""
+    k, n, _ = controls.shape
+    out = (jax.ShapeDtypeStruct((k, n + 1, 6), jnp.float32),
+           jax.ShapeDtypeStruct((k, n, 2), jnp.float32),
+           jax.ShapeDtypeStruct((k, n, 6), jnp.float32))
+    _register()
+    call = jax.ffi.ffi_call("vamppi_rollout", out, vmap_method="sequential")
+    return call(jnp.asarray(model, jnp.float32), jnp.asarray(x0, jnp.float32),
+                jnp.asarray(u_prev, jnp.float32), jnp.asarray(controls, jnp.float32),
+                dt=np.float32(dt), substeps=np.int64(substeps), threads=np.int64(n_threads))
