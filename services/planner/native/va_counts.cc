@@ -44,6 +44,20 @@ namespace {
 
 constexpr int kX = 3, kY = 4, kPsi = 5, kStateDim = 6;
 constexpr int64_t kMaxPoints = 1024;   // config: visibility_points <= 1000
+constexpr int64_t kMaxQueries = 16;
+constexpr int64_t kLanes = 16;         // a patch row is read as segments of 16 counts
+
+typedef float v16f __attribute__((vector_size(64)));
+typedef uint16_t v16u __attribute__((vector_size(32)));
+
+inline float hsum(v16f v) {
+  typedef float v8f __attribute__((vector_size(32)));
+  typedef float v4f __attribute__((vector_size(16)));
+  const v8f a = __builtin_shufflevector(v, v, 0, 1, 2, 3, 4, 5, 6, 7) +
+                __builtin_shufflevector(v, v, 8, 9, 10, 11, 12, 13, 14, 15);
+  const v4f b = __builtin_shufflevector(a, a, 0, 1, 2, 3) + __builtin_shufflevector(a, a, 4, 5, 6, 7);
+  return (b[0] + b[2]) + (b[1] + b[3]);
+}
 
 struct Problem {
   const float* mean;
@@ -58,11 +72,11 @@ struct Problem {
   int64_t n_pts;
   const int32_t* offsets;     // (queries, 2) row, col
   int64_t reach;              // max |offset|
-  const float* grid_x;        // (rays, points) body-frame offsets, split by component
-  const float* grid_y;
-  int64_t rays, points;
-  const float* weights_t;     // (queries, size * size): the weights transposed
-  int64_t size, queries;
+  const float* grid_x;        // (rays, stride) body-frame offsets, split by component; each
+  const float* grid_y;        // ray padded to `stride` (a multiple of 16) with its last point
+  int64_t rays, points, stride;
+  const float* weights;       // (queries, size, segments * 16): each patch row's weights,
+  int64_t size, queries;      // zero past `size`
   int64_t lag, pad;
   float gamma;
   float* out;
@@ -89,15 +103,20 @@ inline float exp_nonpositive(float x) {
   return x < -87.0f ? 0.0f : p * scale;
 }
 
-// Adds pose `s`'s visible ray points to the raw count map (padded) and appends their cells
-// to `cells` (for the clean-up). A ray's cells are computed together (vector code), then
-// walked to its first blocker; the count is added as the cell's height is read (the two
-// maps' cache misses overlap).
-void add_visible(const Problem& p, const float* s, int32_t skip, uint16_t* map,
-                 std::vector<int32_t>& cells) {
+// Blocks of kBlock x kBlock cells: a trajectory's `relevant` map marks the blocks its patches
+// cover; a visible point elsewhere is under no patch of that trajectory, so counting it changes
+// nothing read, and a ray is walked only as far as its last point in a marked block.
+constexpr int kBlockShift = 3, kBlock = 1 << kBlockShift;
+
+// Adds pose `s`'s visible ray points that lie in relevant blocks to the raw count map (padded)
+// and appends their cells to `cells` from `n_cells` on (for the clean-up). A ray's cells are
+// computed together (vector code), then walked to its first blocker.
+void add_visible(const Problem& p, const float* s, int32_t skip, const uint8_t* relevant,
+                 int64_t wb, uint16_t* map, int32_t* cells, int64_t& n_cells) {
   const float x = s[kX], y = s[kY];
   const float c = std::cos(s[kPsi]), sn = std::sin(s[kPsi]);
-  const int64_t wp = p.w + 2 * p.pad;
+  const int32_t wp = static_cast<int32_t>(p.w + 2 * p.pad), w = static_cast<int32_t>(p.w);
+  const int32_t pad = static_cast<int32_t>(p.pad), bw = static_cast<int32_t>(wb);
   int64_t vr = static_cast<int64_t>(std::floor((y - p.oy) / p.res));
   int64_t vc = static_cast<int64_t>(std::floor((x - p.ox) / p.res));
   vr = std::clamp<int64_t>(vr, 0, p.h - 1);
@@ -106,44 +125,70 @@ void add_visible(const Problem& p, const float* s, int32_t skip, uint16_t* map,
   const float fh = static_cast<float>(p.h), fw = static_cast<float>(p.w);
   const float ox = p.ox, oy = p.oy, res = p.res;
   const int n = static_cast<int>(p.points);
-  float fr[kMaxPoints], fc[kMaxPoints];
+  int32_t inside[kMaxPoints], cell[kMaxPoints], block[kMaxPoints], padded[kMaxPoints];
+  int64_t nc = n_cells;
+  const int stride = static_cast<int>(p.stride);
   for (int64_t r = 0; r < p.rays; ++r) {
-    const float* __restrict gx = p.grid_x + r * p.points;
-    const float* __restrict gy = p.grid_y + r * p.points;
-    for (int k = 0; k < n; ++k) {   // as visibility.ray_cells, in float32
-      fc[k] = std::floor((x + c * gx[k] - sn * gy[k] - ox) / res);
-      fr[k] = std::floor((y + sn * gx[k] + c * gy[k] - oy) / res);
+    const float* __restrict gx = p.grid_x + r * p.stride;
+    const float* __restrict gy = p.grid_y + r * p.stride;
+    for (int k = 0; k < stride; ++k) {   // as visibility.ray_cells, in float32
+      const float fc = std::floor((x + c * gx[k] - sn * gy[k] - ox) / res);
+      const float fr = std::floor((y + sn * gx[k] + c * gy[k] - oy) / res);
+      inside[k] = fr >= 0.0f && fr < fh && fc >= 0.0f && fc < fw;
+      const int32_t row = static_cast<int32_t>(std::min(std::max(fr, 0.0f), fh - 1.0f));
+      const int32_t col = static_cast<int32_t>(std::min(std::max(fc, 0.0f), fw - 1.0f));
+      cell[k] = row * w + col;
+      block[k] = (row >> kBlockShift) * bw + (col >> kBlockShift);
+      padded[k] = (row + pad) * wp + col + pad;
     }
-    for (int64_t k = 0; k < p.points; ++k) {
-      // off the map: blocks the ray and is not seen
-      if (!(fr[k] >= 0.0f && fr[k] < fh && fc[k] >= 0.0f && fc[k] < fw)) break;
-      const int64_t row = static_cast<int64_t>(fr[k]), col = static_cast<int64_t>(fc[k]);
-      if (k >= skip) {   // nearer points block but do not count
-        const int32_t cell = static_cast<int32_t>((row + p.pad) * wp + col + p.pad);
-        ++map[cell];
-        cells.push_back(cell);
+    for (int k = 0; k < n; ++k) {
+      if (!inside[k]) break;              // off the map: blocks the ray and is not seen
+      if (relevant[block[k]] && k >= skip) {   // nearer points block but do not count
+        ++map[padded[k]];
+        cells[nc++] = padded[k];
       }
-      if (p.mean[row * p.w + col] > threshold) break;  // the first blocker is seen
+      if (p.mean[cell[k]] > threshold) break;  // the first blocker is seen
     }
   }
+  n_cells = nc;
 }
 
 void trajectories(const Problem& p, int64_t k0, int64_t k1) {
   const int64_t wp = p.w + 2 * p.pad;
-  const int64_t area = p.size * p.size, width = p.queries * p.n_pts;
+  const int64_t width = p.queries * p.n_pts;
+  const int64_t segments = (p.size + kLanes - 1) / kLanes, row_len = segments * kLanes;
   // raw counts as uint16 (at most rays * points * T per cell, checked on the Python side):
-  // half the cache footprint of floats
-  std::vector<uint16_t> map(static_cast<size_t>((p.h + 2 * p.pad) * wp), 0);
-  std::vector<int32_t> cells;
-  cells.reserve(static_cast<size_t>(p.t_len * p.rays * p.points));
-  std::vector<float> patch(static_cast<size_t>(area)), prior(static_cast<size_t>(width));
+  // half the cache footprint of floats; a patch row's last segment may read past the map
+  std::vector<uint16_t> map(static_cast<size_t>((p.h + 2 * p.pad) * wp + row_len), 0);
+  std::vector<int32_t> cells(static_cast<size_t>(p.t_len * p.rays * p.points));
+  int64_t n_cells = 0;
+  std::vector<float> prior(static_cast<size_t>(width));
+  const int64_t n_vec = p.size * segments;                  // 16-lane vectors in a patch
+  std::vector<v16f> patch(static_cast<size_t>(n_vec)), weights(static_cast<size_t>(p.queries * n_vec));
+  std::memcpy(weights.data(), p.weights, weights.size() * sizeof(v16f));
+  const int64_t hb = (p.h + kBlock - 1) / kBlock, wb = (p.w + kBlock - 1) / kBlock;
+  std::vector<uint8_t> relevant(static_cast<size_t>(hb * wb));
   for (int64_t k = k0; k < k1; ++k) {
     const float* st = p.states + k * p.t_len * kStateDim;
     const int32_t* skip = p.skip + k * p.t_len;
     const int32_t* rows = p.rows + k * p.t_len * p.n_pts;
     const int32_t* cols = p.cols + k * p.t_len * p.n_pts;
     float* out = p.out + k * p.t_len * width;
-    cells.clear();
+    n_cells = 0;
+    std::fill(relevant.begin(), relevant.end(), 0);
+    for (int64_t i = p.lag; i < p.t_len; ++i) {    // the blocks under step i's patches
+      for (int64_t q = 0; q < p.n_pts; ++q) {
+        const int64_t r0 = std::clamp<int64_t>(rows[i * p.n_pts + q], p.reach, p.h - 1 - p.reach);
+        const int64_t c0 = std::clamp<int64_t>(cols[i * p.n_pts + q], p.reach, p.w - 1 - p.reach);
+        const int64_t b_r0 = std::max<int64_t>(r0 - p.pad, 0) >> kBlockShift;
+        const int64_t b_r1 = std::min<int64_t>(r0 + p.pad, p.h - 1) >> kBlockShift;
+        const int64_t b_c0 = std::max<int64_t>(c0 - p.pad, 0) >> kBlockShift;
+        const int64_t b_c1 = std::min<int64_t>(c0 + p.pad, p.w - 1) >> kBlockShift;
+        for (int64_t br = b_r0; br <= b_r1; ++br) {
+          for (int64_t bc = b_c0; bc <= b_c1; ++bc) relevant[br * wb + bc] = 1;
+        }
+      }
+    }
     for (int64_t i = 0; i < p.t_len; ++i) {
       const int32_t* ri = rows + i * p.n_pts;
       const int32_t* ci = cols + i * p.n_pts;
@@ -161,22 +206,30 @@ void trajectories(const Problem& p, int64_t k0, int64_t k1) {
         continue;
       }
       // poses 0 .. i - lag
-      add_visible(p, st + (i - p.lag) * kStateDim, skip[i - p.lag], map.data(), cells);
+      add_visible(p, st + (i - p.lag) * kStateDim, skip[i - p.lag], relevant.data(), wb,
+                  map.data(), cells.data(), n_cells);
       for (int64_t q = 0; q < p.n_pts; ++q) {
         // the patch around the footprint cell starts at the cell itself in padded coordinates
         const int64_t r0 = std::clamp<int64_t>(ri[q], p.reach, p.h - 1 - p.reach);
         const int64_t c0 = std::clamp<int64_t>(ci[q], p.reach, p.w - 1 - p.reach);
-        for (int64_t a = 0; a < p.size; ++a) {
+        for (int64_t a = 0; a < p.size; ++a) {   // the patch's rows as floats
           const uint16_t* src = map.data() + (r0 + a) * wp + c0;
-          float* dst = patch.data() + a * p.size;
-          for (int64_t b = 0; b < p.size; ++b) dst[b] = static_cast<float>(src[b]);
+          for (int64_t g = 0; g < segments; ++g) {
+            v16u raw;
+            std::memcpy(&raw, src + g * kLanes, sizeof raw);
+            patch[a * segments + g] = __builtin_convertvector(raw, v16f);
+          }
         }
-        for (int64_t o = 0; o < p.queries; ++o) {
-          const float* wt = p.weights_t + o * area;
-          float acc = 0.0f;
-#pragma omp simd reduction(+ : acc)
-          for (int64_t e = 0; e < area; ++e) acc += patch[e] * wt[e];
-          oi[o * p.n_pts + q] = acc;
+        for (int64_t o = 0; o < p.queries; ++o) {   // times each query's weights
+          const v16f* wo = weights.data() + o * n_vec;
+          v16f acc0 = v16f{}, acc1 = v16f{};
+          int64_t e = 0;
+          for (; e + 1 < n_vec; e += 2) {
+            acc0 += patch[e] * wo[e];
+            acc1 += patch[e + 1] * wo[e + 1];
+          }
+          if (e < n_vec) acc0 += patch[e] * wo[e];
+          oi[o * p.n_pts + q] = hsum(acc0 + acc1);
         }
       }
       const float g = -p.gamma;
@@ -184,7 +237,7 @@ void trajectories(const Problem& p, int64_t k0, int64_t k1) {
 #pragma omp simd
       for (int64_t j = 0; j < width; ++j) oi[j] = pr[j] * exp_nonpositive(g * oi[j]);
     }
-    for (int32_t cell : cells) map[cell] = 0;
+    for (int64_t j = 0; j < n_cells; ++j) map[cells[j]] = 0;
   }
 }
 
@@ -219,21 +272,32 @@ ffi::Error VaCountsImpl(ffi::Buffer<ffi::F32> mean, ffi::Buffer<ffi::F32> varian
   if (md[0] <= 2 * reach || md[1] <= 2 * reach) {
     return ffi::Error::InvalidArgument("va_counts: the map is smaller than a patch");
   }
-  if (points > kMaxPoints) return ffi::Error::InvalidArgument("va_counts: too many points");
-  const float* o = origin.typed_data();
-  const int64_t m = rays * points, area = wd[0], queries = wd[1];
-  std::vector<float> gx(m), gy(m), wt(area * queries);
-  for (int64_t j = 0; j < m; ++j) {
-    gx[j] = grid.typed_data()[2 * j];
-    gy[j] = grid.typed_data()[2 * j + 1];
+  if (points > kMaxPoints - kLanes) {
+    return ffi::Error::InvalidArgument("va_counts: too many points");
   }
-  for (int64_t e = 0; e < area; ++e) {
-    for (int64_t q = 0; q < queries; ++q) wt[q * area + e] = weights.typed_data()[e * queries + q];
+  if (wd[1] > kMaxQueries) return ffi::Error::InvalidArgument("va_counts: too many queries");
+  const float* o = origin.typed_data();
+  const int64_t stride = (points + kLanes - 1) / kLanes * kLanes, queries = wd[1];
+  const int64_t row_len = (size + kLanes - 1) / kLanes * kLanes;
+  std::vector<float> gx(rays * stride), gy(rays * stride), wt(queries * size * row_len, 0.0f);
+  for (int64_t r = 0; r < rays; ++r) {
+    for (int64_t k = 0; k < stride; ++k) {
+      const int64_t j = r * points + std::min(k, points - 1);
+      gx[r * stride + k] = grid.typed_data()[2 * j];
+      gy[r * stride + k] = grid.typed_data()[2 * j + 1];
+    }
+  }
+  for (int64_t a = 0; a < size; ++a) {   // weights (size * size, queries), row-major patches
+    for (int64_t b = 0; b < size; ++b) {
+      for (int64_t q = 0; q < queries; ++q) {
+        wt[(q * size + a) * row_len + b] = weights.typed_data()[(a * size + b) * queries + q];
+      }
+    }
   }
   Problem p{mean.typed_data(), variance.typed_data(), md[0], md[1], o[0], o[1], resolution,
             height, states.typed_data(), skip.typed_data(), sd[1], rows.typed_data(),
             cols.typed_data(), rd[2], offsets.typed_data(), reach, gx.data(), gy.data(), rays,
-            points, wt.data(), size, queries, lag, pad, gamma, out->typed_data()};
+            points, stride, wt.data(), size, queries, lag, pad, gamma, out->typed_data()};
   const int64_t k_traj = sd[0];
   const int64_t n = std::max<int64_t>(1, std::min<int64_t>(threads, k_traj));
   std::vector<std::thread> pool;
