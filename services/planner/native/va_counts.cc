@@ -173,7 +173,10 @@ void trajectories(const Problem& p, int64_t k0, int64_t k1) {
   std::vector<uint16_t> map(static_cast<size_t>((p.h + 2 * p.pad) * wp + row_len), 0);
   std::vector<int32_t> cells(static_cast<size_t>(p.t_len * p.rays * p.points));
   int64_t n_cells = 0;
-  std::vector<float> prior(static_cast<size_t>(width));
+  // prior and splatted counts of one step, padded to whole vectors for the exponential
+  const int64_t width_padded = (width + kLanes - 1) / kLanes * kLanes;
+  std::vector<float> prior(static_cast<size_t>(width_padded), 0.0f);
+  std::vector<float> met(static_cast<size_t>(width_padded), 0.0f);
   const int64_t n_vec = p.size * segments;                  // 16-lane vectors in a patch
   std::vector<v16f> patch(static_cast<size_t>(n_vec)), weights(static_cast<size_t>(p.queries * n_vec));
   std::memcpy(weights.data(), p.weights, weights.size() * sizeof(v16f));
@@ -238,7 +241,7 @@ void trajectories(const Problem& p, int64_t k0, int64_t k1) {
         }
       }
       if (i < p.lag) {                             // nothing seen yet
-        std::copy(prior.begin(), prior.end(), oi);
+        std::copy(prior.begin(), prior.begin() + width, oi);
         continue;
       }
       // poses 0 .. i - lag
@@ -273,13 +276,15 @@ void trajectories(const Problem& p, int64_t k0, int64_t k1) {
             acc1 += patch[e + 1] * wo[e + 1];
           }
           if (e < n_vec) acc0 += patch[e] * wo[e];
-          oi[o * p.n_pts + q] = hsum(acc0 + acc1);
+          met[o * p.n_pts + q] = hsum(acc0 + acc1);
         }
       }
       const float g = -p.gamma;
       const float* pr = prior.data();
+      float* mt = met.data();
 #pragma omp simd
-      for (int64_t j = 0; j < width; ++j) oi[j] = pr[j] * exp_nonpositive(g * oi[j]);
+      for (int64_t j = 0; j < width_padded; ++j) mt[j] = pr[j] * exp_nonpositive(g * mt[j]);
+      std::copy(met.begin(), met.begin() + width, oi);
     }
     for (int64_t j = 0; j < n_cells; ++j) map[cells[j]] = 0;
   }
