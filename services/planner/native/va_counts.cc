@@ -13,10 +13,8 @@
 // The visited cells are set back to zero after each trajectory, so one map per
 // thread serves every trajectory.
 //
-// What no read can feel is skipped (the variances returned are the same): a point is counted
-// only if its 8 x 8-cell block lies under some patch of the trajectory, and pose i's rays are
-// walked only as far as the box of the patches of steps i + lag .. T-1 (the only steps that
-// read its points) reaches from the pose.
+// What no read can feel is not counted (the variances returned are the same): a point whose
+// 8 x 8-cell block lies under no patch of the trajectory.
 //
 // Why native: on XLA:CPU the vectorised form pays 3-4 ns per scatter and
 // gather element for 19 M ray points at K = 800 (docs/benchmarks.md); here each
@@ -79,7 +77,6 @@ struct Problem {
   int64_t reach;              // max |offset|
   const float* grid_x;        // (rays, stride) body-frame offsets, split by component; each
   const float* grid_y;        // ray padded to `stride` (a multiple of 16) with its last point
-  const float* range2;        // (rays, stride) squared distance of each ray point from the CG
   int64_t rays, points, stride;
   const float* weights;       // (queries, size, segments * 16): each patch row's weights,
   int64_t size, queries;      // zero past `size`
@@ -117,9 +114,8 @@ constexpr int kBlockShift = 3, kBlock = 1 << kBlockShift;
 // Adds pose `s`'s visible ray points that lie in relevant blocks to the raw count map (padded)
 // and appends their cells to `cells` from `n_cells` on (for the clean-up). A ray's cells are
 // computed together (vector code), then walked to its first blocker.
-void add_visible(const Problem& p, const float* s, int32_t skip, float reach2,
-                 const uint8_t* relevant, int64_t wb, uint16_t* map, int32_t* cells,
-                 int64_t& n_cells) {
+void add_visible(const Problem& p, const float* s, int32_t skip, const uint8_t* relevant,
+                 int64_t wb, uint16_t* map, int32_t* cells, int64_t& n_cells) {
   const float x = s[kX], y = s[kY];
   const float c = std::cos(s[kPsi]), sn = std::sin(s[kPsi]);
   const int32_t wp = static_cast<int32_t>(p.w + 2 * p.pad), w = static_cast<int32_t>(p.w);
@@ -134,15 +130,11 @@ void add_visible(const Problem& p, const float* s, int32_t skip, float reach2,
   const int n = static_cast<int>(p.points);
   int32_t inside[kMaxPoints], cell[kMaxPoints], block[kMaxPoints], padded[kMaxPoints];
   int64_t nc = n_cells;
+  const int stride = static_cast<int>(p.stride);
   for (int64_t r = 0; r < p.rays; ++r) {
     const float* __restrict gx = p.grid_x + r * p.stride;
     const float* __restrict gy = p.grid_y + r * p.stride;
-    // points farther than reach2 lie under no later patch: the walk ends before them
-    const float* __restrict r2 = p.range2 + r * p.stride;
-    int end = n;
-    while (end > 0 && r2[end - 1] > reach2) --end;
-    const int vec_end = (end + kLanes - 1) / kLanes * kLanes;   // <= stride
-    for (int k = 0; k < vec_end; ++k) {   // as visibility.ray_cells, in float32
+    for (int k = 0; k < stride; ++k) {   // as visibility.ray_cells, in float32
       const float fc = std::floor((x + c * gx[k] - sn * gy[k] - ox) / res);
       const float fr = std::floor((y + sn * gx[k] + c * gy[k] - oy) / res);
       inside[k] = fr >= 0.0f && fr < fh && fc >= 0.0f && fc < fw;
@@ -152,7 +144,7 @@ void add_visible(const Problem& p, const float* s, int32_t skip, float reach2,
       block[k] = (row >> kBlockShift) * bw + (col >> kBlockShift);
       padded[k] = (row + pad) * wp + col + pad;
     }
-    for (int k = 0; k < end; ++k) {
+    for (int k = 0; k < n; ++k) {
       if (!inside[k]) break;              // off the map: blocks the ray and is not seen
       if (relevant[block[k]] && k >= skip) {   // nearer points block but do not count
         ++map[padded[k]];
@@ -173,16 +165,12 @@ void trajectories(const Problem& p, int64_t k0, int64_t k1) {
   std::vector<uint16_t> map(static_cast<size_t>((p.h + 2 * p.pad) * wp + row_len), 0);
   std::vector<int32_t> cells(static_cast<size_t>(p.t_len * p.rays * p.points));
   int64_t n_cells = 0;
-  // prior and splatted counts of one step, padded to whole vectors for the exponential
-  const int64_t width_padded = (width + kLanes - 1) / kLanes * kLanes;
-  std::vector<float> prior(static_cast<size_t>(width_padded), 0.0f);
-  std::vector<float> met(static_cast<size_t>(width_padded), 0.0f);
+  std::vector<float> prior(static_cast<size_t>(width));
   const int64_t n_vec = p.size * segments;                  // 16-lane vectors in a patch
   std::vector<v16f> patch(static_cast<size_t>(n_vec)), weights(static_cast<size_t>(p.queries * n_vec));
   std::memcpy(weights.data(), p.weights, weights.size() * sizeof(v16f));
   const int64_t hb = (p.h + kBlock - 1) / kBlock, wb = (p.w + kBlock - 1) / kBlock;
   std::vector<uint8_t> relevant(static_cast<size_t>(hb * wb));
-  std::vector<int64_t> box(static_cast<size_t>(4 * p.t_len));
   for (int64_t k = k0; k < k1; ++k) {
     const float* st = p.states + k * p.t_len * kStateDim;
     const int32_t* skip = p.skip + k * p.t_len;
@@ -204,30 +192,6 @@ void trajectories(const Problem& p, int64_t k0, int64_t k1) {
         }
       }
     }
-    // the box of the patches of steps j .. T-1 (cells, padded by the patch's half side), for
-    // each j: pose i's points are read by steps i + lag .. T-1 only, so none farther from its
-    // CG than that box's farthest corner can count
-    for (int64_t j = p.t_len - 1; j >= p.lag; --j) {
-      int64_t lo_r = p.h, hi_r = -1, lo_c = p.w, hi_c = -1;
-      if (j + 1 < p.t_len) {
-        lo_r = box[4 * (j + 1)];
-        hi_r = box[4 * (j + 1) + 1];
-        lo_c = box[4 * (j + 1) + 2];
-        hi_c = box[4 * (j + 1) + 3];
-      }
-      for (int64_t q = 0; q < p.n_pts; ++q) {
-        const int64_t r0 = std::clamp<int64_t>(rows[j * p.n_pts + q], p.reach, p.h - 1 - p.reach);
-        const int64_t c0 = std::clamp<int64_t>(cols[j * p.n_pts + q], p.reach, p.w - 1 - p.reach);
-        lo_r = std::min(lo_r, r0 - p.pad);
-        hi_r = std::max(hi_r, r0 + p.pad);
-        lo_c = std::min(lo_c, c0 - p.pad);
-        hi_c = std::max(hi_c, c0 + p.pad);
-      }
-      box[4 * j] = lo_r;
-      box[4 * j + 1] = hi_r;
-      box[4 * j + 2] = lo_c;
-      box[4 * j + 3] = hi_c;
-    }
     for (int64_t i = 0; i < p.t_len; ++i) {
       const int32_t* ri = rows + i * p.n_pts;
       const int32_t* ci = cols + i * p.n_pts;
@@ -241,20 +205,12 @@ void trajectories(const Problem& p, int64_t k0, int64_t k1) {
         }
       }
       if (i < p.lag) {                             // nothing seen yet
-        std::copy(prior.begin(), prior.begin() + width, oi);
+        std::copy(prior.begin(), prior.end(), oi);
         continue;
       }
       // poses 0 .. i - lag
-      const float* pose = st + (i - p.lag) * kStateDim;
-      const int64_t* b = box.data() + 4 * i;        // steps i .. T-1 read pose i - lag's points
-      // the box's edges in metres (a cell's far edge: + 1), with one cell to spare
-      const double x0 = p.ox + (b[2] - 1) * static_cast<double>(p.res) - pose[kX];
-      const double x1 = p.ox + (b[3] + 2) * static_cast<double>(p.res) - pose[kX];
-      const double y0 = p.oy + (b[0] - 1) * static_cast<double>(p.res) - pose[kY];
-      const double y1 = p.oy + (b[1] + 2) * static_cast<double>(p.res) - pose[kY];
-      const double dx = std::max(std::abs(x0), std::abs(x1)), dy = std::max(std::abs(y0), std::abs(y1));
-      add_visible(p, pose, skip[i - p.lag], static_cast<float>(dx * dx + dy * dy), relevant.data(),
-                  wb, map.data(), cells.data(), n_cells);
+      add_visible(p, st + (i - p.lag) * kStateDim, skip[i - p.lag], relevant.data(), wb,
+                  map.data(), cells.data(), n_cells);
       for (int64_t q = 0; q < p.n_pts; ++q) {
         // the patch around the footprint cell starts at the cell itself in padded coordinates
         const int64_t r0 = std::clamp<int64_t>(ri[q], p.reach, p.h - 1 - p.reach);
@@ -276,15 +232,13 @@ void trajectories(const Problem& p, int64_t k0, int64_t k1) {
             acc1 += patch[e + 1] * wo[e + 1];
           }
           if (e < n_vec) acc0 += patch[e] * wo[e];
-          met[o * p.n_pts + q] = hsum(acc0 + acc1);
+          oi[o * p.n_pts + q] = hsum(acc0 + acc1);
         }
       }
       const float g = -p.gamma;
       const float* pr = prior.data();
-      float* mt = met.data();
 #pragma omp simd
-      for (int64_t j = 0; j < width_padded; ++j) mt[j] = pr[j] * exp_nonpositive(g * mt[j]);
-      std::copy(met.begin(), met.begin() + width, oi);
+      for (int64_t j = 0; j < width; ++j) oi[j] = pr[j] * exp_nonpositive(g * oi[j]);
     }
     for (int64_t j = 0; j < n_cells; ++j) map[cells[j]] = 0;
   }
@@ -329,14 +283,11 @@ ffi::Error VaCountsImpl(ffi::Buffer<ffi::F32> mean, ffi::Buffer<ffi::F32> varian
   const int64_t stride = (points + kLanes - 1) / kLanes * kLanes, queries = wd[1];
   const int64_t row_len = (size + kLanes - 1) / kLanes * kLanes;
   std::vector<float> gx(rays * stride), gy(rays * stride), wt(queries * size * row_len, 0.0f);
-  std::vector<float> range2(rays * stride);
   for (int64_t r = 0; r < rays; ++r) {
     for (int64_t k = 0; k < stride; ++k) {
       const int64_t j = r * points + std::min(k, points - 1);
       gx[r * stride + k] = grid.typed_data()[2 * j];
       gy[r * stride + k] = grid.typed_data()[2 * j + 1];
-      range2[r * stride + k] = gx[r * stride + k] * gx[r * stride + k] +
-                               gy[r * stride + k] * gy[r * stride + k];
     }
   }
   for (int64_t a = 0; a < size; ++a) {   // weights (size * size, queries), row-major patches
@@ -348,8 +299,7 @@ ffi::Error VaCountsImpl(ffi::Buffer<ffi::F32> mean, ffi::Buffer<ffi::F32> varian
   }
   Problem p{mean.typed_data(), variance.typed_data(), md[0], md[1], o[0], o[1], resolution,
             height, states.typed_data(), skip.typed_data(), sd[1], rows.typed_data(),
-            cols.typed_data(), rd[2], offsets.typed_data(), reach, gx.data(), gy.data(),
-            range2.data(), rays,
+            cols.typed_data(), rd[2], offsets.typed_data(), reach, gx.data(), gy.data(), rays,
             points, stride, wt.data(), size, queries, lag, pad, gamma, out->typed_data()};
   const int64_t k_traj = sd[0];
   const int64_t n = std::max<int64_t>(1, std::min<int64_t>(threads, k_traj));
