@@ -37,6 +37,7 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 SOURCES = tuple(Path(__file__).with_name(n) for n in ("va_counts.cc", "rollout.cc"))
+HEADERS = (Path(__file__).with_name("parallel.h"),)
 TARGETS = {"vamppi_va_counts": "VaCounts", "vamppi_rollout": "Rollout"}   # FFI name: symbol
 # -march=native: the library is built on the machine that runs it (the digest names the
 # CPU); -ffp-contract=off: no fused multiply-adds, so the cells are JAX's float32 cells;
@@ -64,7 +65,7 @@ def _cpu() -> str:
 def library_path() -> Path:
     """Where the library for these sources and this jaxlib lives."""
     import jaxlib
-    digest = hashlib.sha256(b"".join(s.read_bytes() for s in SOURCES)
+    digest = hashlib.sha256(b"".join(s.read_bytes() for s in SOURCES + HEADERS)
                             + jaxlib.__version__.encode() + " ".join(FLAGS).encode()
                             + _cpu().encode()).hexdigest()[:12]
     return SOURCES[0].with_name(f"_native-{digest}.so")

@@ -21,9 +21,8 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
-#include <thread>
-#include <vector>
 
+#include "parallel.h"
 #include "xla/ffi/api/ffi.h"
 
 namespace ffi = xla::ffi;
@@ -358,14 +357,8 @@ ffi::Error RolloutImpl(ffi::Buffer<ffi::F32> model, ffi::Buffer<ffi::F32> x0,
   Problem pb{make_params(model.typed_data(), dt, static_cast<int>(substeps)),
              x0.typed_data(), u_prev.typed_data(), controls.typed_data(), cd[0], cd[1],
              states->typed_data(), applied->typed_data(), xdots->typed_data()};
-  const int64_t n_blocks = (pb.k + W - 1) / W;
-  const int64_t n = std::max<int64_t>(1, std::min<int64_t>(threads, n_blocks));
-  std::vector<std::thread> pool;
-  for (int64_t t = 1; t < n; ++t) {
-    pool.emplace_back(blocks, std::cref(pb), t * n_blocks / n, (t + 1) * n_blocks / n);
-  }
-  blocks(pb, 0, n_blocks / n);
-  for (auto& th : pool) th.join();
+  vamppi::parallel_ranges((pb.k + W - 1) / W, threads,
+                          [&pb](int64_t b0, int64_t b1) { blocks(pb, b0, b1); });
   return ffi::Error::Success();
 }
 

@@ -36,9 +36,9 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
-#include <thread>
 #include <vector>
 
+#include "parallel.h"
 #include "xla/ffi/api/ffi.h"
 
 namespace ffi = xla::ffi;
@@ -108,7 +108,7 @@ inline float exp_nonpositive(float x) {
 
 // Blocks of kBlock x kBlock cells: a trajectory's `relevant` map marks the blocks its patches
 // cover; a visible point elsewhere is under no patch of that trajectory, so counting it changes
-// nothing read, and a ray is walked only as far as its last point in a marked block.
+// nothing read.
 constexpr int kBlockShift = 3, kBlock = 1 << kBlockShift;
 
 // Adds pose `s`'s visible ray points that lie in relevant blocks to the raw count map (padded)
@@ -301,14 +301,8 @@ ffi::Error VaCountsImpl(ffi::Buffer<ffi::F32> mean, ffi::Buffer<ffi::F32> varian
             height, states.typed_data(), skip.typed_data(), sd[1], rows.typed_data(),
             cols.typed_data(), rd[2], offsets.typed_data(), reach, gx.data(), gy.data(), rays,
             points, stride, wt.data(), size, queries, lag, pad, gamma, out->typed_data()};
-  const int64_t k_traj = sd[0];
-  const int64_t n = std::max<int64_t>(1, std::min<int64_t>(threads, k_traj));
-  std::vector<std::thread> pool;
-  for (int64_t t = 1; t < n; ++t) {
-    pool.emplace_back(trajectories, std::cref(p), t * k_traj / n, (t + 1) * k_traj / n);
-  }
-  trajectories(p, 0, k_traj / n);
-  for (auto& th : pool) th.join();
+  vamppi::parallel_ranges(sd[0], threads,
+                          [&p](int64_t k0, int64_t k1) { trajectories(p, k0, k1); });
   return ffi::Error::Success();
 }
 
