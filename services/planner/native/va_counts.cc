@@ -58,7 +58,8 @@ inline float hsum(v16f v) {
   typedef float v4f __attribute__((vector_size(16)));
   const v8f a = __builtin_shufflevector(v, v, 0, 1, 2, 3, 4, 5, 6, 7) +
                 __builtin_shufflevector(v, v, 8, 9, 10, 11, 12, 13, 14, 15);
-  const v4f b = __builtin_shufflevector(a, a, 0, 1, 2, 3) + __builtin_shufflevector(a, a, 4, 5, 6, 7);
+  const v4f b =
+      __builtin_shufflevector(a, a, 0, 1, 2, 3) + __builtin_shufflevector(a, a, 4, 5, 6, 7);
   return (b[0] + b[2]) + (b[1] + b[3]);
 }
 
@@ -167,7 +168,8 @@ void trajectories(const Problem& p, int64_t k0, int64_t k1) {
   int64_t n_cells = 0;
   std::vector<float> prior(static_cast<size_t>(width));
   const int64_t n_vec = p.size * segments;                  // 16-lane vectors in a patch
-  std::vector<v16f> patch(static_cast<size_t>(n_vec)), weights(static_cast<size_t>(p.queries * n_vec));
+  std::vector<v16f> patch(static_cast<size_t>(n_vec));
+  std::vector<v16f> weights(static_cast<size_t>(p.queries * n_vec));
   std::memcpy(weights.data(), p.weights, weights.size() * sizeof(v16f));
   const int64_t hb = (p.h + kBlock - 1) / kBlock, wb = (p.w + kBlock - 1) / kBlock;
   std::vector<uint8_t> relevant(static_cast<size_t>(hb * wb));
