@@ -90,6 +90,7 @@ class SensorConfig:
     mount_pitch_deg: float = _rng(-80.0, 80.0)
     rate_hz: float = _rng(0.1, 1000.0)
     march_step_m: float = _rng(0.0, 1.0, lo_open=True)
+    render_kernel: str = _rng(choices=("auto", "jax", "native"))
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import partial
+from functools import lru_cache, partial
 
 import jax
 import jax.numpy as jnp
@@ -25,6 +25,7 @@ import numpy as np
 
 from common.config import SensorConfig
 from common.geometry import bilinear
+from services.sensor import native
 
 
 @dataclass(frozen=True)
@@ -40,13 +41,14 @@ class CameraParams:
     mount_forward_m: float
     pitch_rad: float
     march_step_m: float
+    kernel: str = "auto"        # sensor.render_kernel: auto | jax | native
 
     @classmethod
     def from_config(cls, s: SensorConfig) -> CameraParams:
         fx = (s.width_px / 2.0) / math.tan(math.radians(s.hfov_deg) / 2.0)
         return cls(s.width_px, s.height_px, fx, fx, (s.width_px - 1) / 2.0,
                    (s.height_px - 1) / 2.0, s.range_m, s.mount_height_m, s.mount_forward_m,
-                   math.radians(s.mount_pitch_deg), s.march_step_m)
+                   math.radians(s.mount_pitch_deg), s.march_step_m, s.render_kernel)
 
     @property
     def intrinsics(self) -> np.ndarray:
@@ -67,11 +69,14 @@ def camera_pose(p: CameraParams, x: float, y: float, z: float, yaw: float
     return pos, rot
 
 
+@lru_cache(maxsize=8)
 def ray_directions(p: CameraParams) -> np.ndarray:
-    """Unit ray directions in the camera frame, (H, W, 3)."""
+    """Unit ray directions in the camera frame, (H, W, 3) float64 (read-only)."""
     u, v = np.meshgrid(np.arange(p.width), np.arange(p.height), indexing="xy")
     d = np.stack([(u - p.cx) / p.fx, (v - p.cy) / p.fy, np.ones_like(u, dtype=float)], axis=-1)
-    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    d.flags.writeable = False
+    return d
 
 
 REFINE_STEPS = 8     # bisections of the crossing step (0.1 m / 2^8 = 0.4 mm), then a secant
@@ -136,8 +141,14 @@ def render_depth(p: CameraParams, heightmap: jax.Array, origin: jax.Array, resol
 
 def render(p: CameraParams, heightmap: np.ndarray, origin: tuple[float, float], resolution: float,
            x: float, y: float, z: float, yaw: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(depth (H, W) float32, cam_position, cam_rotation) for a vehicle pose."""
+    """(depth (H, W) float32, cam_position, cam_rotation) for a vehicle pose, by the
+    native ray caster or the JAX form (`p.kernel`)."""
     pos, rot = camera_pose(p, x, y, z, yaw)
+    if native.use_native(p.kernel):
+        depth = native.render_depth(heightmap, np.asarray(origin), resolution, pos, rot,
+                                    ray_directions(p).reshape(-1, 3), range_m=p.range_m,
+                                    step_m=p.march_step_m, refine=REFINE_STEPS)
+        return depth.reshape(p.height, p.width), pos, rot
     depth = render_depth(p, heightmap, jnp.asarray(origin, jnp.float32), float(resolution),
                          jnp.asarray(pos, jnp.float32), jnp.asarray(rot, jnp.float32))
     return np.asarray(depth), pos, rot

@@ -9,23 +9,14 @@
   chosen the same way by `planner.rollout_kernel`; tests/test_planner.py checks it
   against the JAX form and the plant's float64 model.
 
-The library is compiled from its sources with the system's C++ compiler
-(`$CXX`, else g++) against the XLA FFI headers that jaxlib ships, once per
-source and jaxlib version, next to the source; `make` builds it at install
-(`python -m services.planner.native`), and the first use builds it if it is
-missing. Nothing is downloaded.
+The library (common/native.py builds it) is compiled next to its sources; `make` builds
+it at install, and the first use builds it if it is missing.
 """
 
 from __future__ import annotations
 
-import ctypes
-import hashlib
 import logging
 import os
-import platform
-import shutil
-import subprocess
-import tempfile
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
@@ -34,71 +25,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from common.native import Library, NativeUnavailable
+
 log = logging.getLogger(__name__)
 
-SOURCES = tuple(Path(__file__).with_name(n) for n in ("va_counts.cc", "rollout.cc"))
-HEADERS = (Path(__file__).with_name("parallel.h"),)
+LIBRARY = Library(tuple(Path(__file__).with_name(n) for n in ("va_counts.cc", "rollout.cc")),
+                  (Path(__file__).with_name("parallel.h"),))
 TARGETS = {"vamppi_va_counts": "VaCounts", "vamppi_rollout": "Rollout"}   # FFI name: symbol
-# -march=native: the library is built on the machine that runs it (the digest names the
-# CPU); -ffp-contract=off: no fused multiply-adds, so the cells are JAX's float32 cells;
-# -fno-trapping-math: lets the cell loop (floor) be vector code, results unchanged
-FLAGS = ("-O3", "-march=native", "-std=c++17", "-shared", "-fPIC", "-pthread",
-         "-fopenmp-simd", "-ffp-contract=off", "-fno-trapping-math")
-
-
-class NativeUnavailable(RuntimeError):
-    """The kernel could not be built or loaded (no compiler, no headers, ...)."""
-
-
-def _cpu() -> str:
-    """The CPU model (a -march=native build runs only on its own kind)."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith(("model name", "Model", "CPU part")):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.machine()
-
-
-def library_path() -> Path:
-    """Where the library for these sources and this jaxlib lives."""
-    import jaxlib
-    digest = hashlib.sha256(b"".join(s.read_bytes() for s in SOURCES + HEADERS)
-                            + jaxlib.__version__.encode() + " ".join(FLAGS).encode()
-                            + _cpu().encode()).hexdigest()[:12]
-    return SOURCES[0].with_name(f"_native-{digest}.so")
-
-
-def build() -> Path:
-    """Compile the library if it is not there (atomically: concurrent builders are safe)."""
-    out = library_path()
-    if out.exists():
-        return out
-    cxx = os.environ.get("CXX") or shutil.which("g++") or shutil.which("c++")
-    if not cxx:
-        raise NativeUnavailable("no C++ compiler (set CXX or install g++)")
-    fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
-    os.close(fd)
-    cmd = [cxx, *FLAGS, f"-I{jax.ffi.include_dir()}", *map(str, SOURCES), "-o", tmp]
-    try:
-        r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
-        if r.returncode != 0:
-            raise NativeUnavailable(f"{' '.join(cmd)} failed:\n{r.stderr[-4000:]}")
-        os.replace(tmp, out)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    for old in [*out.parent.glob("_native-*.so"), *out.parent.glob("_va_counts-*.so")]:
-        if old != out:                                      # earlier sources' builds
-            old.unlink(missing_ok=True)
-    return out
 
 
 @lru_cache(maxsize=1)
 def _register() -> None:
-    lib = ctypes.cdll.LoadLibrary(str(build()))
+    lib = LIBRARY.load()
     for name, symbol in TARGETS.items():
         jax.ffi.register_ffi_target(name, jax.ffi.pycapsule(getattr(lib, symbol)), platform="cpu")
 

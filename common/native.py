@@ -1,0 +1,111 @@
+"""Building the project's native CPU kernels: one shared library per service.
+
+A `Library` is compiled from its C++ sources with the system's compiler (`$CXX`, else
+g++) against the XLA FFI headers that jaxlib ships, once per source, jaxlib version and
+CPU model, next to its sources (`make` builds every library at install: `python -m
+common.native`; the first use builds one that is missing). Nothing is downloaded.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+
+# -march=native: a library is built on the machine that runs it (the digest names the CPU);
+# -ffp-contract=off: no fused multiply-adds, so the kernels' float32 arithmetic is that of
+# their JAX forms; -fno-trapping-math: lets floor() be vector code, results unchanged
+FLAGS = ("-O3", "-march=native", "-std=c++17", "-shared", "-fPIC", "-pthread",
+         "-fopenmp-simd", "-ffp-contract=off", "-fno-trapping-math")
+
+
+class NativeUnavailable(RuntimeError):
+    """A kernel could not be built or loaded (no compiler, no headers, ...)."""
+
+
+def cpu_model() -> str:
+    """The CPU model (a -march=native build runs only on its own kind)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith(("model name", "Model", "CPU part")):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.machine()
+
+
+@dataclass(frozen=True)
+class Library:
+    """C++ `sources` (with the `headers` they include) built into `<dir>/<stem>-<digest>.so`."""
+    sources: tuple[Path, ...]
+    headers: tuple[Path, ...] = ()
+    stem: str = "_native"
+
+    def path(self) -> Path:
+        """Where the library for these sources, this jaxlib and this CPU lives."""
+        import jaxlib
+        digest = hashlib.sha256(b"".join(s.read_bytes() for s in self.sources + self.headers)
+                                + jaxlib.__version__.encode() + " ".join(FLAGS).encode()
+                                + cpu_model().encode()).hexdigest()[:12]
+        return self.sources[0].with_name(f"{self.stem}-{digest}.so")
+
+    def build(self) -> Path:
+        """Compile the library if it is not there (atomically: concurrent builders are safe)."""
+        import jax
+        out = self.path()
+        if out.exists():
+            return out
+        cxx = os.environ.get("CXX") or shutil.which("g++") or shutil.which("c++")
+        if not cxx:
+            raise NativeUnavailable("no C++ compiler (set CXX or install g++)")
+        fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
+        os.close(fd)
+        cmd = [cxx, *FLAGS, f"-I{jax.ffi.include_dir()}", *map(str, self.sources), "-o", tmp]
+        try:
+            r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+            if r.returncode != 0:
+                raise NativeUnavailable(f"{' '.join(cmd)} failed:\n{r.stderr[-4000:]}")
+            os.replace(tmp, out)
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+        for old in out.parent.glob(f"{self.stem}-*.so"):
+            if old != out:                                  # earlier sources' builds
+                old.unlink(missing_ok=True)
+        return out
+
+    def load(self) -> ctypes.CDLL:
+        """The built library, loaded once per process."""
+        return _load(self)
+
+
+@cache
+def _load(lib: Library) -> ctypes.CDLL:
+    return ctypes.cdll.LoadLibrary(str(lib.build()))
+
+
+def libraries() -> tuple[Library, ...]:
+    """Every native library of the project."""
+    from services.planner import native as planner_native
+    from services.sensor import native as sensor_native
+    return (planner_native.LIBRARY, sensor_native.LIBRARY)
+
+
+if __name__ == "__main__":      # `python -m common.native`: build them all (make does)
+    import sys
+    failed = 0
+    for library in libraries():
+        try:
+            print(library.build())
+        except NativeUnavailable as e:
+            failed += 1
+            print(f"not built, its service uses the JAX form: {e}", file=sys.stderr)
+    sys.exit(1 if failed else 0)
