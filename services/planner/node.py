@@ -1,8 +1,8 @@
 """Planner service: one MPPI solve per control tick, publishes cmd, plan and stats.
 
 lockstep: each map is matched with the state of the same stamp; one solve per
-map. realtime: one solve per new control tick of the newest state, on the
-newest map.
+map. realtime: one solve per new map, on the newest state (at most one per half
+tick); without new maps, one per tick on the last map.
 """
 
 from __future__ import annotations
@@ -42,6 +42,7 @@ def main(cfg: Config, instance: str = "0", stop: threading.Event | None = None) 
                    np.zeros((n, n), np.float32), np.zeros(2), cfg.mapper.resolution_m)  # JIT
         node.ready()
         last_t: float | None = None
+        m: Map | None = None
         while not stop.is_set():
             if lockstep:
                 m = maps.get(timeout=0.2)
@@ -53,11 +54,16 @@ def main(cfg: Config, instance: str = "0", stop: threading.Event | None = None) 
                     log.warning("no state for map stamp %.2f", m.header.stamp)
                     continue
             else:
-                st = states.get(timeout=0.2)
-                m = maps.peek_latest()
+                # a solve as soon as a new map is in, on the newest state (the map of a
+                # tick arrives a frame's render and fusion after the tick); no new map in
+                # 1.5 ticks: a solve on the last one, once a tick
+                fresh = maps.get(timeout=1.5 * dt if m is not None else 0.2)
+                if fresh is not None:
+                    m = fresh
+                st = states.peek_latest()
                 if st is None or m is None:
                     continue
-                if last_t is not None and st.header.stamp < last_t + dt - 1e-6:
+                if not realtime_due(last_t, st.header.stamp, fresh is not None, dt):
                     continue
             t = st.header.stamp
             if last_t is None or t < last_t - 1e-9:        # first tick, or a new episode
@@ -83,6 +89,15 @@ def main(cfg: Config, instance: str = "0", stop: threading.Event | None = None) 
                               cost_mean=_finite(out.cost_mean),
                               terms=dict(zip(TERMS, map(float, np.asarray(out.terms)),
                                              strict=True)))
+
+
+def realtime_due(last_t: float | None, t: float, fresh_map: bool, dt: float) -> bool:
+    """Whether a realtime solve is due on the newest state (stamp t): the first, the first
+    of a new episode (t went back), half a tick after the last on a new map, a tick after
+    it on the last map."""
+    if last_t is None or t < last_t - 1e-9:
+        return True
+    return t >= last_t + (0.5 if fresh_map else 1.0) * dt - 1e-6
 
 
 def _finite(v) -> float:

@@ -357,8 +357,9 @@ ffi::Error RolloutImpl(ffi::Buffer<ffi::F32> model, ffi::Buffer<ffi::F32> x0,
   Problem pb{make_params(model.typed_data(), dt, static_cast<int>(substeps)),
              x0.typed_data(), u_prev.typed_data(), controls.typed_data(), cd[0], cd[1],
              states->typed_data(), applied->typed_data(), xdots->typed_data()};
-  vamppi::parallel_ranges((pb.k + W - 1) / W, threads,
-                          [&pb](int64_t b0, int64_t b1) { blocks(pb, b0, b1); });
+  vamppi::parallel_ranges((pb.k + W - 1) / W, threads, 2, [&pb](vamppi::Ranges& ranges) {
+    for (int64_t b0, b1; ranges.next(b0, b1);) blocks(pb, b0, b1);
+  });
   return ffi::Error::Success();
 }
 

@@ -49,6 +49,7 @@ constexpr int kX = 3, kY = 4, kPsi = 5, kStateDim = 6;
 constexpr int64_t kMaxPoints = 1024;   // config: visibility_points <= 1000
 constexpr int64_t kMaxQueries = 16;
 constexpr int64_t kLanes = 16;         // a patch row is read as segments of 16 counts
+constexpr int64_t kGrain = 4;          // trajectories a thread takes at a time (parallel.h)
 
 typedef float v16f __attribute__((vector_size(64)));
 typedef uint16_t v16u __attribute__((vector_size(32)));
@@ -157,7 +158,7 @@ void add_visible(const Problem& p, const float* s, int32_t skip, const uint8_t* 
   n_cells = nc;
 }
 
-void trajectories(const Problem& p, int64_t k0, int64_t k1) {
+void trajectories(const Problem& p, vamppi::Ranges& ranges) {
   const int64_t wp = p.w + 2 * p.pad;
   const int64_t width = p.queries * p.n_pts;
   const int64_t segments = (p.size + kLanes - 1) / kLanes, row_len = segments * kLanes;
@@ -173,76 +174,78 @@ void trajectories(const Problem& p, int64_t k0, int64_t k1) {
   std::memcpy(weights.data(), p.weights, weights.size() * sizeof(v16f));
   const int64_t hb = (p.h + kBlock - 1) / kBlock, wb = (p.w + kBlock - 1) / kBlock;
   std::vector<uint8_t> relevant(static_cast<size_t>(hb * wb));
-  for (int64_t k = k0; k < k1; ++k) {
-    const float* st = p.states + k * p.t_len * kStateDim;
-    const int32_t* skip = p.skip + k * p.t_len;
-    const int32_t* rows = p.rows + k * p.t_len * p.n_pts;
-    const int32_t* cols = p.cols + k * p.t_len * p.n_pts;
-    float* out = p.out + k * p.t_len * width;
-    n_cells = 0;
-    std::fill(relevant.begin(), relevant.end(), 0);
-    for (int64_t i = p.lag; i < p.t_len; ++i) {    // the blocks under step i's patches
-      for (int64_t q = 0; q < p.n_pts; ++q) {
-        const int64_t r0 = std::clamp<int64_t>(rows[i * p.n_pts + q], p.reach, p.h - 1 - p.reach);
-        const int64_t c0 = std::clamp<int64_t>(cols[i * p.n_pts + q], p.reach, p.w - 1 - p.reach);
-        const int64_t b_r0 = std::max<int64_t>(r0 - p.pad, 0) >> kBlockShift;
-        const int64_t b_r1 = std::min<int64_t>(r0 + p.pad, p.h - 1) >> kBlockShift;
-        const int64_t b_c0 = std::max<int64_t>(c0 - p.pad, 0) >> kBlockShift;
-        const int64_t b_c1 = std::min<int64_t>(c0 + p.pad, p.w - 1) >> kBlockShift;
-        for (int64_t br = b_r0; br <= b_r1; ++br) {
-          for (int64_t bc = b_c0; bc <= b_c1; ++bc) relevant[br * wb + bc] = 1;
-        }
-      }
-    }
-    for (int64_t i = 0; i < p.t_len; ++i) {
-      const int32_t* ri = rows + i * p.n_pts;
-      const int32_t* ci = cols + i * p.n_pts;
-      float* oi = out + i * width;
-      for (int64_t o = 0; o < p.queries; ++o) {   // the prior at the query cells
-        const int64_t dr = p.offsets[2 * o], dc = p.offsets[2 * o + 1];
+  for (int64_t k0, k1; ranges.next(k0, k1);) {
+    for (int64_t k = k0; k < k1; ++k) {
+      const float* st = p.states + k * p.t_len * kStateDim;
+      const int32_t* skip = p.skip + k * p.t_len;
+      const int32_t* rows = p.rows + k * p.t_len * p.n_pts;
+      const int32_t* cols = p.cols + k * p.t_len * p.n_pts;
+      float* out = p.out + k * p.t_len * width;
+      n_cells = 0;
+      std::fill(relevant.begin(), relevant.end(), 0);
+      for (int64_t i = p.lag; i < p.t_len; ++i) {    // the blocks under step i's patches
         for (int64_t q = 0; q < p.n_pts; ++q) {
-          const int64_t r = std::clamp<int64_t>(ri[q] + dr, 0, p.h - 1);
-          const int64_t c = std::clamp<int64_t>(ci[q] + dc, 0, p.w - 1);
-          prior[o * p.n_pts + q] = p.variance[r * p.w + c];
-        }
-      }
-      if (i < p.lag) {                             // nothing seen yet
-        std::copy(prior.begin(), prior.end(), oi);
-        continue;
-      }
-      // poses 0 .. i - lag
-      add_visible(p, st + (i - p.lag) * kStateDim, skip[i - p.lag], relevant.data(), wb,
-                  map.data(), cells.data(), n_cells);
-      for (int64_t q = 0; q < p.n_pts; ++q) {
-        // the patch around the footprint cell starts at the cell itself in padded coordinates
-        const int64_t r0 = std::clamp<int64_t>(ri[q], p.reach, p.h - 1 - p.reach);
-        const int64_t c0 = std::clamp<int64_t>(ci[q], p.reach, p.w - 1 - p.reach);
-        for (int64_t a = 0; a < p.size; ++a) {   // the patch's rows as floats
-          const uint16_t* src = map.data() + (r0 + a) * wp + c0;
-          for (int64_t g = 0; g < segments; ++g) {
-            v16u raw;
-            std::memcpy(&raw, src + g * kLanes, sizeof raw);
-            patch[a * segments + g] = __builtin_convertvector(raw, v16f);
+          const int64_t r0 = std::clamp<int64_t>(rows[i * p.n_pts + q], p.reach, p.h - 1 - p.reach);
+          const int64_t c0 = std::clamp<int64_t>(cols[i * p.n_pts + q], p.reach, p.w - 1 - p.reach);
+          const int64_t b_r0 = std::max<int64_t>(r0 - p.pad, 0) >> kBlockShift;
+          const int64_t b_r1 = std::min<int64_t>(r0 + p.pad, p.h - 1) >> kBlockShift;
+          const int64_t b_c0 = std::max<int64_t>(c0 - p.pad, 0) >> kBlockShift;
+          const int64_t b_c1 = std::min<int64_t>(c0 + p.pad, p.w - 1) >> kBlockShift;
+          for (int64_t br = b_r0; br <= b_r1; ++br) {
+            for (int64_t bc = b_c0; bc <= b_c1; ++bc) relevant[br * wb + bc] = 1;
           }
         }
-        for (int64_t o = 0; o < p.queries; ++o) {   // times each query's weights
-          const v16f* wo = weights.data() + o * n_vec;
-          v16f acc0 = v16f{}, acc1 = v16f{};
-          int64_t e = 0;
-          for (; e + 1 < n_vec; e += 2) {
-            acc0 += patch[e] * wo[e];
-            acc1 += patch[e + 1] * wo[e + 1];
-          }
-          if (e < n_vec) acc0 += patch[e] * wo[e];
-          oi[o * p.n_pts + q] = hsum(acc0 + acc1);
-        }
       }
-      const float g = -p.gamma;
-      const float* pr = prior.data();
+      for (int64_t i = 0; i < p.t_len; ++i) {
+        const int32_t* ri = rows + i * p.n_pts;
+        const int32_t* ci = cols + i * p.n_pts;
+        float* oi = out + i * width;
+        for (int64_t o = 0; o < p.queries; ++o) {   // the prior at the query cells
+          const int64_t dr = p.offsets[2 * o], dc = p.offsets[2 * o + 1];
+          for (int64_t q = 0; q < p.n_pts; ++q) {
+            const int64_t r = std::clamp<int64_t>(ri[q] + dr, 0, p.h - 1);
+            const int64_t c = std::clamp<int64_t>(ci[q] + dc, 0, p.w - 1);
+            prior[o * p.n_pts + q] = p.variance[r * p.w + c];
+          }
+        }
+        if (i < p.lag) {                             // nothing seen yet
+          std::copy(prior.begin(), prior.end(), oi);
+          continue;
+        }
+        // poses 0 .. i - lag
+        add_visible(p, st + (i - p.lag) * kStateDim, skip[i - p.lag], relevant.data(), wb,
+                    map.data(), cells.data(), n_cells);
+        for (int64_t q = 0; q < p.n_pts; ++q) {
+          // the patch around the footprint cell starts at the cell itself in padded coordinates
+          const int64_t r0 = std::clamp<int64_t>(ri[q], p.reach, p.h - 1 - p.reach);
+          const int64_t c0 = std::clamp<int64_t>(ci[q], p.reach, p.w - 1 - p.reach);
+          for (int64_t a = 0; a < p.size; ++a) {   // the patch's rows as floats
+            const uint16_t* src = map.data() + (r0 + a) * wp + c0;
+            for (int64_t g = 0; g < segments; ++g) {
+              v16u raw;
+              std::memcpy(&raw, src + g * kLanes, sizeof raw);
+              patch[a * segments + g] = __builtin_convertvector(raw, v16f);
+            }
+          }
+          for (int64_t o = 0; o < p.queries; ++o) {   // times each query's weights
+            const v16f* wo = weights.data() + o * n_vec;
+            v16f acc0 = v16f{}, acc1 = v16f{};
+            int64_t e = 0;
+            for (; e + 1 < n_vec; e += 2) {
+              acc0 += patch[e] * wo[e];
+              acc1 += patch[e + 1] * wo[e + 1];
+            }
+            if (e < n_vec) acc0 += patch[e] * wo[e];
+            oi[o * p.n_pts + q] = hsum(acc0 + acc1);
+          }
+        }
+        const float g = -p.gamma;
+        const float* pr = prior.data();
 #pragma omp simd
-      for (int64_t j = 0; j < width; ++j) oi[j] = pr[j] * exp_nonpositive(g * oi[j]);
+        for (int64_t j = 0; j < width; ++j) oi[j] = pr[j] * exp_nonpositive(g * oi[j]);
+      }
+      for (int64_t j = 0; j < n_cells; ++j) map[cells[j]] = 0;
     }
-    for (int64_t j = 0; j < n_cells; ++j) map[cells[j]] = 0;
   }
 }
 
@@ -303,8 +306,8 @@ ffi::Error VaCountsImpl(ffi::Buffer<ffi::F32> mean, ffi::Buffer<ffi::F32> varian
             height, states.typed_data(), skip.typed_data(), sd[1], rows.typed_data(),
             cols.typed_data(), rd[2], offsets.typed_data(), reach, gx.data(), gy.data(), rays,
             points, stride, wt.data(), size, queries, lag, pad, gamma, out->typed_data()};
-  vamppi::parallel_ranges(sd[0], threads,
-                          [&p](int64_t k0, int64_t k1) { trajectories(p, k0, k1); });
+  vamppi::parallel_ranges(sd[0], threads, kGrain,
+                          [&p](vamppi::Ranges& ranges) { trajectories(p, ranges); });
   return ffi::Error::Success();
 }
 
