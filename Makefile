@@ -10,7 +10,7 @@ $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV) || python3 -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install -q -e '.[test]'
-	$(BIN)/python -m common.native || echo "some native kernels not built: their services use the JAX forms"
+	$(BIN)/python -m services.build_native || echo "some native kernels not built: their services use the JAX forms"
 	touch $(STAMP)
 
 demo: $(STAMP)

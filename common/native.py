@@ -3,7 +3,7 @@
 A `Library` is compiled from its C++ sources with the system's compiler (`$CXX`, else
 g++) against the XLA FFI headers that jaxlib ships, once per source, jaxlib version and
 CPU model, next to its sources (`make` builds every library at install: `python -m
-common.native`; the first use builds one that is missing). Nothing is downloaded.
+services.build_native`; the first use builds one that is missing). Nothing is downloaded.
 """
 
 from __future__ import annotations
@@ -90,22 +90,3 @@ class Library:
 @cache
 def _load(lib: Library) -> ctypes.CDLL:
     return ctypes.cdll.LoadLibrary(str(lib.build()))
-
-
-def libraries() -> tuple[Library, ...]:
-    """Every native library of the project."""
-    from services.planner import native as planner_native
-    from services.sensor import native as sensor_native
-    return (planner_native.LIBRARY, sensor_native.LIBRARY)
-
-
-if __name__ == "__main__":      # `python -m common.native`: build them all (make does)
-    import sys
-    failed = 0
-    for library in libraries():
-        try:
-            print(library.build())
-        except NativeUnavailable as e:
-            failed += 1
-            print(f"not built, its service uses the JAX form: {e}", file=sys.stderr)
-    sys.exit(1 if failed else 0)
