@@ -33,8 +33,10 @@ def _function() -> ctypes._CFuncPtr:
     return f
 
 
+@lru_cache(maxsize=1)
 def available() -> bool:
-    """Whether the kernel builds and loads here."""
+    """Whether the kernel builds and loads here (tried once per process: `auto` asks
+    before every frame)."""
     try:
         _function()
     except (NativeUnavailable, OSError) as e:
