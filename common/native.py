@@ -10,14 +10,18 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+import logging
 import os
 import platform
 import shutil
 import subprocess
 import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
+
+log = logging.getLogger(__name__)
 
 # -march=native: a library is built on the machine that runs it (the digest names the CPU);
 # -ffp-contract=off: no fused multiply-adds, so the kernels' float32 arithmetic is that of
@@ -90,3 +94,26 @@ class Library:
 @cache
 def _load(lib: Library) -> ctypes.CDLL:
     return ctypes.cdll.LoadLibrary(str(lib.build()))
+
+
+@cache
+def loads(load: Callable[[], object], what: str) -> bool:
+    """Whether `load` (a library's loader) succeeds here; tried once per process, a failure
+    logged once."""
+    try:
+        load()
+    except (NativeUnavailable, OSError) as e:
+        log.warning("%s unavailable, using the JAX form: %s", what, e)
+        return False
+    return True
+
+
+def use_native(kernel: str, load: Callable[[], object], what: str) -> bool:
+    """A `*_kernel` setting resolved: `jax` no, `native` yes (the loader raises where it cannot
+    load), `auto` where it loads."""
+    if kernel == "jax":
+        return False
+    if kernel == "native":
+        load()
+        return True
+    return loads(load, what)

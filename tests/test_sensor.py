@@ -128,3 +128,19 @@ def test_camera_pose_geometry():
     fwd = rot @ np.array([0, 0, 1.0])
     assert fwd[1] > 0.9 and fwd[2] < 0      # looks along +y, pitched down
     assert math.isclose(2 * math.degrees(math.atan((cam.width / 2) / cam.fx)), 72.0)
+
+
+def test_auto_uses_the_jax_form_where_a_native_library_does_not_load(caplog):
+    from common import native as common_native
+    tries = []
+
+    def broken():
+        tries.append(1)
+        raise common_native.NativeUnavailable("no C++ compiler")
+
+    assert not common_native.use_native("auto", broken, "a test kernel")
+    assert not common_native.use_native("auto", broken, "a test kernel")   # asked every frame
+    assert len(tries) == 1 and caplog.text.count("a test kernel unavailable") == 1
+    with pytest.raises(common_native.NativeUnavailable):
+        common_native.use_native("native", broken, "a test kernel")
+    assert not common_native.use_native("jax", broken, "a test kernel") and len(tries) == 2

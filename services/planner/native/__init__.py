@@ -15,7 +15,6 @@ it at install, and the first use builds it if it is missing.
 
 from __future__ import annotations
 
-import logging
 import os
 from functools import lru_cache
 from pathlib import Path
@@ -25,13 +24,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from common import native as common_native
 from common.native import Library, NativeUnavailable
-
-log = logging.getLogger(__name__)
 
 LIBRARY = Library(tuple(Path(__file__).with_name(n) for n in ("va_counts.cc", "rollout.cc")),
                   (Path(__file__).with_name("parallel.h"),))
 TARGETS = {"vamppi_va_counts": "VaCounts", "vamppi_rollout": "Rollout"}   # FFI name: symbol
+_WHAT = "the native planner kernels"
 
 
 @lru_cache(maxsize=1)
@@ -43,27 +42,17 @@ def _register() -> None:
 
 def available() -> bool:
     """Whether the kernels can run here: a CPU backend and a library that builds and loads."""
-    if jax.default_backend() != "cpu":
-        return False
-    try:
-        _register()
-    except (NativeUnavailable, OSError) as e:
-        log.warning("native kernels unavailable, using the JAX forms: %s", e)
-        return False
-    return True
+    return jax.default_backend() == "cpu" and common_native.loads(_register, _WHAT)
 
 
 def use_native(kernel: str) -> bool:
     """`planner.va_kernel` or `planner.rollout_kernel` resolved on this machine."""
-    if kernel == "jax":
-        return False
-    if kernel == "native":
-        if jax.default_backend() != "cpu":
+    if kernel != "jax" and jax.default_backend() != "cpu":
+        if kernel == "native":
             raise NativeUnavailable(f"a native planner kernel needs a CPU backend, "
                                     f"this one is {jax.default_backend()}")
-        _register()
-        return True
-    return available()
+        return False
+    return common_native.use_native(kernel, _register, _WHAT)
 
 
 def threads(requested: int) -> int:

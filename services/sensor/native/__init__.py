@@ -9,15 +9,13 @@ brute-force march and the two against each other.
 from __future__ import annotations
 
 import ctypes
-import logging
 from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 
-from common.native import Library, NativeUnavailable
-
-log = logging.getLogger(__name__)
+from common import native
+from common.native import Library
 
 LIBRARY = Library((Path(__file__).with_name("render.cc"),))
 
@@ -33,26 +31,14 @@ def _function() -> ctypes._CFuncPtr:
     return f
 
 
-@lru_cache(maxsize=1)
 def available() -> bool:
-    """Whether the kernel builds and loads here (tried once per process: `auto` asks
-    before every frame)."""
-    try:
-        _function()
-    except (NativeUnavailable, OSError) as e:
-        log.warning("native ray caster unavailable, using the JAX form: %s", e)
-        return False
-    return True
+    """Whether the kernel builds and loads here (tried once per process)."""
+    return native.loads(_function, "the native ray caster")
 
 
 def use_native(kernel: str) -> bool:
     """`sensor.render_kernel` resolved on this machine."""
-    if kernel == "jax":
-        return False
-    if kernel == "native":
-        _function()
-        return True
-    return available()
+    return native.use_native(kernel, _function, "the native ray caster")
 
 
 def render_depth(heightmap: np.ndarray, origin: np.ndarray, resolution: float,
