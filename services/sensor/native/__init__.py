@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import native
+from common import native as common_native
 from common.native import Library
 
 LIBRARY = Library((Path(__file__).with_name("render.cc"),))
@@ -33,12 +33,12 @@ def _function() -> ctypes._CFuncPtr:
 
 def available() -> bool:
     """Whether the kernel builds and loads here (tried once per process)."""
-    return native.loads(_function, "the native ray caster")
+    return common_native.loads(_function, "the native ray caster")
 
 
 def use_native(kernel: str) -> bool:
     """`sensor.render_kernel` resolved on this machine."""
-    return native.use_native(kernel, _function, "the native ray caster")
+    return common_native.use_native(kernel, _function, "the native ray caster")
 
 
 def render_depth(heightmap: np.ndarray, origin: np.ndarray, resolution: float,
