@@ -14,7 +14,11 @@
 // thread serves every trajectory.
 //
 // What no read can feel is not counted (the variances returned are the same): a point whose
-// 8 x 8-cell block lies under no patch of the trajectory.
+// 8 x 8-cell block lies under no patch of the trajectory; and a ray is walked only up to its
+// last point that could count (none: not walked). A ray's cells come from its first point,
+// its direction and each point's distance along it (the grid's rays are straight), so a
+// point within float32 rounding of a cell boundary may fall in the neighbouring cell of the
+// JAX form's (tests/test_visibility.py leaves those out).
 //
 // Why native: on XLA:CPU the vectorised form pays 3-4 ns per scatter and
 // gather element for 19 M ray points at K = 800 (docs/benchmarks.md); here each
@@ -54,14 +58,39 @@ constexpr int64_t kGrain = 4;          // trajectories a thread takes at a time 
 typedef float v16f __attribute__((vector_size(64)));
 typedef uint16_t v16u __attribute__((vector_size(32)));
 
-inline float hsum(v16f v) {
-  typedef float v8f __attribute__((vector_size(32)));
-  typedef float v4f __attribute__((vector_size(16)));
-  const v8f a = __builtin_shufflevector(v, v, 0, 1, 2, 3, 4, 5, 6, 7) +
-                __builtin_shufflevector(v, v, 8, 9, 10, 11, 12, 13, 14, 15);
-  const v4f b =
-      __builtin_shufflevector(a, a, 0, 1, 2, 3) + __builtin_shufflevector(a, a, 4, 5, 6, 7);
-  return (b[0] + b[2]) + (b[1] + b[3]);
+// The 16 sums of 16 vectors, in one vector (lane j = the sum of v[j]'s lanes): a transposing
+// tree of 15 adds instead of 16 horizontal sums of 4 shuffles and 4 adds each.
+inline v16f lo_hi(v16f a, v16f b, int level) {
+  switch (level) {   // lanes of a and b paired at distance 8, 4, 2, 1, then added
+    case 0:
+      return __builtin_shufflevector(a, b, 0, 1, 2, 3, 4, 5, 6, 7, 16, 17, 18, 19, 20, 21, 22,
+                                     23) +
+             __builtin_shufflevector(a, b, 8, 9, 10, 11, 12, 13, 14, 15, 24, 25, 26, 27, 28, 29,
+                                     30, 31);
+    case 1:
+      return __builtin_shufflevector(a, b, 0, 1, 2, 3, 8, 9, 10, 11, 16, 17, 18, 19, 24, 25, 26,
+                                     27) +
+             __builtin_shufflevector(a, b, 4, 5, 6, 7, 12, 13, 14, 15, 20, 21, 22, 23, 28, 29, 30,
+                                     31);
+    case 2:
+      return __builtin_shufflevector(a, b, 0, 1, 4, 5, 8, 9, 12, 13, 16, 17, 20, 21, 24, 25, 28,
+                                     29) +
+             __builtin_shufflevector(a, b, 2, 3, 6, 7, 10, 11, 14, 15, 18, 19, 22, 23, 26, 27, 30,
+                                     31);
+    default:
+      return __builtin_shufflevector(a, b, 0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28,
+                                     30) +
+             __builtin_shufflevector(a, b, 1, 3, 5, 7, 9, 11, 13, 15, 17, 19, 21, 23, 25, 27, 29,
+                                     31);
+  }
+}
+
+inline v16f sums16(const v16f* v) {
+  v16f c[8], d[4], e[2];
+  for (int k = 0; k < 8; ++k) c[k] = lo_hi(v[2 * k], v[2 * k + 1], 0);
+  for (int k = 0; k < 4; ++k) d[k] = lo_hi(c[2 * k], c[2 * k + 1], 1);
+  for (int k = 0; k < 2; ++k) e[k] = lo_hi(d[2 * k], d[2 * k + 1], 2);
+  return lo_hi(e[0], e[1], 3);
 }
 
 struct Problem {
@@ -77,8 +106,10 @@ struct Problem {
   int64_t n_pts;
   const int32_t* offsets;     // (queries, 2) row, col
   int64_t reach;              // max |offset|
-  const float* grid_x;        // (rays, stride) body-frame offsets, split by component; each
-  const float* grid_y;        // ray padded to `stride` (a multiple of 16) with its last point
+  const float* ray_base;      // (rays, 2) body-frame offset of each ray's first point
+  const float* ray_dir;       // (rays, 2) its unit direction
+  const float* ray_along;     // (rays, stride) each point's distance from the first, padded to
+                              // `stride` (a multiple of 16) with the last
   int64_t rays, points, stride;
   const float* weights;       // (queries, size, segments * 16): each patch row's weights,
   int64_t size, queries;      // zero past `size`
@@ -108,6 +139,35 @@ inline float exp_nonpositive(float x) {
   return x < -87.0f ? 0.0f : p * scale;
 }
 
+// The paper's sizes (a 9 x 9 splat read at a cell and its four neighbours: patches of 11 x 11
+// raw counts, 5 queries) at compile time: one footprint point's 11 patch rows, each one
+// 16-lane vector, stay in registers for the 5 queries' products, which are summed as in the
+// general loop (even rows, odd rows, then the two), so both give the same bits.
+constexpr int kFixedSize = 11, kFixedQueries = 5;
+
+template <int S, int Q>
+inline void fixed_products(const uint16_t* src, int64_t wp, const v16f* weights, v16f* acc,
+                           int64_t acc_stride) {
+  static_assert(S <= kLanes && S >= 2, "a patch row is one 16-lane vector");
+  v16f rows[S];
+  for (int a = 0; a < S; ++a) {
+    v16u raw;
+    std::memcpy(&raw, src + a * wp, sizeof raw);
+    rows[a] = __builtin_convertvector(raw, v16f);
+  }
+  for (int o = 0; o < Q; ++o) {
+    const v16f* wo = weights + o * S;
+    v16f acc0 = v16f{}, acc1 = v16f{};
+    int a = 0;
+    for (; a + 1 < S; a += 2) {
+      acc0 += rows[a] * wo[a];
+      acc1 += rows[a + 1] * wo[a + 1];
+    }
+    if (a < S) acc0 += rows[a] * wo[a];
+    acc[o * acc_stride] = acc0 + acc1;
+  }
+}
+
 // Blocks of kBlock x kBlock cells: a trajectory's `relevant` map marks the blocks its patches
 // cover; a visible point elsewhere is under no patch of that trajectory, so counting it changes
 // nothing read.
@@ -116,7 +176,8 @@ constexpr int kBlockShift = 3, kBlock = 1 << kBlockShift;
 // Adds pose `s`'s visible ray points that lie in relevant blocks to the raw count map (padded)
 // and appends their cells to `cells` from `n_cells` on (for the clean-up). A ray's cells are
 // computed together (vector code), then walked to its first blocker.
-void add_visible(const Problem& p, const float* s, int32_t skip, const uint8_t* relevant,
+__attribute__((target("prefer-vector-width=512")))
+void add_visible(const Problem& p, const float* s, int32_t skip, const int32_t* relevant,
                  int64_t wb, uint16_t* map, int32_t* cells, int64_t& n_cells) {
   const float x = s[kX], y = s[kY];
   const float c = std::cos(s[kPsi]), sn = std::sin(s[kPsi]);
@@ -128,29 +189,45 @@ void add_visible(const Problem& p, const float* s, int32_t skip, const uint8_t* 
   vc = std::clamp<int64_t>(vc, 0, p.w - 1);
   const float threshold = p.mean[vr * p.w + vc] + p.height;
   const float fh = static_cast<float>(p.h), fw = static_cast<float>(p.w);
-  const float ox = p.ox, oy = p.oy, res = p.res;
+  const float inv = 1.0f / p.res;
   const int n = static_cast<int>(p.points);
-  int32_t inside[kMaxPoints], cell[kMaxPoints], block[kMaxPoints], padded[kMaxPoints];
+  int32_t inside[kMaxPoints], cell[kMaxPoints], rows[kMaxPoints], cols[kMaxPoints],
+      counts[kMaxPoints];
   int64_t nc = n_cells;
   const int stride = static_cast<int>(p.stride);
   for (int64_t r = 0; r < p.rays; ++r) {
-    const float* __restrict gx = p.grid_x + r * p.stride;
-    const float* __restrict gy = p.grid_y + r * p.stride;
+    // the ray's points are collinear (VisibilityParams.ray_grid): its first point, and the
+    // direction and distance of the others from it, in the world and in cells
+    const float* __restrict base = p.ray_base + 2 * r;
+    const float* __restrict dir = p.ray_dir + 2 * r;
+    const float* __restrict along = p.ray_along + r * p.stride;
+    const float c0 = (x + c * base[0] - sn * base[1] - p.ox) * inv;
+    const float r0 = (y + sn * base[0] + c * base[1] - p.oy) * inv;
+    const float dc = (c * dir[0] - sn * dir[1]) * inv;
+    const float dr = (sn * dir[0] + c * dir[1]) * inv;
+    // the walk can stop at the last point that could count (in a relevant block, not
+    // skipped): what lies beyond it changes nothing read, and a ray with none is not walked
+    int last = -1;
     for (int k = 0; k < stride; ++k) {   // as visibility.ray_cells, in float32
-      const float fc = std::floor((x + c * gx[k] - sn * gy[k] - ox) / res);
-      const float fr = std::floor((y + sn * gx[k] + c * gy[k] - oy) / res);
+      const float fc = std::floor(c0 + along[k] * dc);
+      const float fr = std::floor(r0 + along[k] * dr);
       inside[k] = fr >= 0.0f && fr < fh && fc >= 0.0f && fc < fw;
       const int32_t row = static_cast<int32_t>(std::min(std::max(fr, 0.0f), fh - 1.0f));
       const int32_t col = static_cast<int32_t>(std::min(std::max(fc, 0.0f), fw - 1.0f));
       cell[k] = row * w + col;
-      block[k] = (row >> kBlockShift) * bw + (col >> kBlockShift);
-      padded[k] = (row + pad) * wp + col + pad;
+      rows[k] = row;
+      cols[k] = col;
+      const int32_t counts_here =
+          relevant[(row >> kBlockShift) * bw + (col >> kBlockShift)] & (k >= skip) & (k < n);
+      counts[k] = counts_here;
+      last = std::max(last, counts_here ? k : -1);
     }
-    for (int k = 0; k < n; ++k) {
+    for (int k = 0; k <= last; ++k) {
       if (!inside[k]) break;              // off the map: blocks the ray and is not seen
-      if (relevant[block[k]] && k >= skip) {   // nearer points block but do not count
-        ++map[padded[k]];
-        cells[nc++] = padded[k];
+      if (counts[k]) {                    // nearer points block but do not count
+        const int32_t at = (rows[k] + pad) * wp + cols[k] + pad;
+        ++map[at];
+        cells[nc++] = at;
       }
       if (p.mean[cell[k]] > threshold) break;  // the first blocker is seen
     }
@@ -173,7 +250,12 @@ void trajectories(const Problem& p, vamppi::Ranges& ranges) {
   std::vector<v16f> weights(static_cast<size_t>(p.queries * n_vec));
   std::memcpy(weights.data(), p.weights, weights.size() * sizeof(v16f));
   const int64_t hb = (p.h + kBlock - 1) / kBlock, wb = (p.w + kBlock - 1) / kBlock;
-  std::vector<uint8_t> relevant(static_cast<size_t>(hb * wb));
+  std::vector<int32_t> relevant(static_cast<size_t>(hb * wb));   // int32: vector gathers
+  // each query cell's 16 products, lanes not yet summed (padded to whole vectors of zeros)
+  const int64_t width_padded = (width + kLanes - 1) / kLanes * kLanes;
+  std::vector<v16f> acc(static_cast<size_t>(width_padded), v16f{});
+  std::vector<float> counts(static_cast<size_t>(width_padded));
+  const bool fixed = p.size == kFixedSize && p.queries == kFixedQueries;
   for (int64_t k0, k1; ranges.next(k0, k1);) {
     for (int64_t k = k0; k < k1; ++k) {
       const float* st = p.states + k * p.t_len * kStateDim;
@@ -219,11 +301,16 @@ void trajectories(const Problem& p, vamppi::Ranges& ranges) {
           // the patch around the footprint cell starts at the cell itself in padded coordinates
           const int64_t r0 = std::clamp<int64_t>(ri[q], p.reach, p.h - 1 - p.reach);
           const int64_t c0 = std::clamp<int64_t>(ci[q], p.reach, p.w - 1 - p.reach);
+          const uint16_t* src = map.data() + r0 * wp + c0;
+          if (fixed) {
+            fixed_products<kFixedSize, kFixedQueries>(src, wp, weights.data(), acc.data() + q,
+                                                      p.n_pts);
+            continue;
+          }
           for (int64_t a = 0; a < p.size; ++a) {   // the patch's rows as floats
-            const uint16_t* src = map.data() + (r0 + a) * wp + c0;
             for (int64_t g = 0; g < segments; ++g) {
               v16u raw;
-              std::memcpy(&raw, src + g * kLanes, sizeof raw);
+              std::memcpy(&raw, src + a * wp + g * kLanes, sizeof raw);
               patch[a * segments + g] = __builtin_convertvector(raw, v16f);
             }
           }
@@ -236,13 +323,18 @@ void trajectories(const Problem& p, vamppi::Ranges& ranges) {
               acc1 += patch[e + 1] * wo[e + 1];
             }
             if (e < n_vec) acc0 += patch[e] * wo[e];
-            oi[o * p.n_pts + q] = hsum(acc0 + acc1);
+            acc[o * p.n_pts + q] = acc0 + acc1;     // summed across its lanes below
           }
+        }
+        for (int64_t j = 0; j < width; j += kLanes) {
+          const v16f sums = sums16(acc.data() + j);
+          std::memcpy(counts.data() + j, &sums, sizeof sums);
         }
         const float g = -p.gamma;
         const float* pr = prior.data();
+        const float* cn = counts.data();
 #pragma omp simd
-        for (int64_t j = 0; j < width; ++j) oi[j] = pr[j] * exp_nonpositive(g * oi[j]);
+        for (int64_t j = 0; j < width; ++j) oi[j] = pr[j] * exp_nonpositive(g * cn[j]);
       }
       for (int64_t j = 0; j < n_cells; ++j) map[cells[j]] = 0;
     }
@@ -287,12 +379,26 @@ ffi::Error VaCountsImpl(ffi::Buffer<ffi::F32> mean, ffi::Buffer<ffi::F32> varian
   const float* o = origin.typed_data();
   const int64_t stride = (points + kLanes - 1) / kLanes * kLanes, queries = wd[1];
   const int64_t row_len = (size + kLanes - 1) / kLanes * kLanes;
-  std::vector<float> gx(rays * stride), gy(rays * stride), wt(queries * size * row_len, 0.0f);
-  for (int64_t r = 0; r < rays; ++r) {
+  std::vector<float> base(2 * rays), dir(2 * rays), along(rays * stride);
+  std::vector<float> wt(queries * size * row_len, 0.0f);
+  const float* g = grid.typed_data();
+  for (int64_t r = 0; r < rays; ++r) {   // each ray: its first point, direction, distances
+    const float* first = g + 2 * r * points;
+    const float* end = g + 2 * (r * points + points - 1);
+    const double ex = double(end[0]) - first[0], ey = double(end[1]) - first[1];
+    const double len = std::hypot(ex, ey);
+    const double ux = len > 0 ? ex / len : 1.0, uy = len > 0 ? ey / len : 0.0;
+    base[2 * r] = first[0];
+    base[2 * r + 1] = first[1];
+    dir[2 * r] = static_cast<float>(ux);
+    dir[2 * r + 1] = static_cast<float>(uy);
     for (int64_t k = 0; k < stride; ++k) {
-      const int64_t j = r * points + std::min(k, points - 1);
-      gx[r * stride + k] = grid.typed_data()[2 * j];
-      gy[r * stride + k] = grid.typed_data()[2 * j + 1];
+      const float* pt = g + 2 * (r * points + std::min(k, points - 1));
+      const double ax = double(pt[0]) - first[0], ay = double(pt[1]) - first[1];
+      if (std::abs(ax * uy - ay * ux) > 1e-4) {
+        return ffi::Error::InvalidArgument("va_counts: a ray's points are not on a line");
+      }
+      along[r * stride + k] = static_cast<float>(ax * ux + ay * uy);
     }
   }
   for (int64_t a = 0; a < size; ++a) {   // weights (size * size, queries), row-major patches
@@ -304,7 +410,7 @@ ffi::Error VaCountsImpl(ffi::Buffer<ffi::F32> mean, ffi::Buffer<ffi::F32> varian
   }
   Problem p{mean.typed_data(), variance.typed_data(), md[0], md[1], o[0], o[1], resolution,
             height, states.typed_data(), skip.typed_data(), sd[1], rows.typed_data(),
-            cols.typed_data(), rd[2], offsets.typed_data(), reach, gx.data(), gy.data(), rays,
+            cols.typed_data(), rd[2], offsets.typed_data(), reach, base.data(), dir.data(), along.data(), rays,
             points, stride, wt.data(), size, queries, lag, pad, gamma, out->typed_data()};
   vamppi::parallel_ranges(sd[0], threads, kGrain,
                           [&p](vamppi::Ranges& ranges) { trajectories(p, ranges); });
