@@ -139,10 +139,22 @@ inline float exp_nonpositive(float x) {
   return x < -87.0f ? 0.0f : p * scale;
 }
 
+// sum over e < n of rows[e] * w[e], the even and the odd terms apart, then the two: both
+// patch paths below, so they give the same bits
+inline v16f products(const v16f* rows, const v16f* w, int64_t n) {
+  v16f acc0 = v16f{}, acc1 = v16f{};
+  int64_t e = 0;
+  for (; e + 1 < n; e += 2) {
+    acc0 += rows[e] * w[e];
+    acc1 += rows[e + 1] * w[e + 1];
+  }
+  if (e < n) acc0 += rows[e] * w[e];
+  return acc0 + acc1;
+}
+
 // The paper's sizes (a 9 x 9 splat read at a cell and its four neighbours: patches of 11 x 11
 // raw counts, 5 queries) at compile time: one footprint point's 11 patch rows, each one
-// 16-lane vector, stay in registers for the 5 queries' products, which are summed as in the
-// general loop (even rows, odd rows, then the two), so both give the same bits.
+// 16-lane vector, stay in registers for the 5 queries' products.
 constexpr int kFixedSize = 11, kFixedQueries = 5;
 
 template <int S, int Q>
@@ -155,17 +167,7 @@ inline void fixed_products(const uint16_t* src, int64_t wp, const v16f* weights,
     std::memcpy(&raw, src + a * wp, sizeof raw);
     rows[a] = __builtin_convertvector(raw, v16f);
   }
-  for (int o = 0; o < Q; ++o) {
-    const v16f* wo = weights + o * S;
-    v16f acc0 = v16f{}, acc1 = v16f{};
-    int a = 0;
-    for (; a + 1 < S; a += 2) {
-      acc0 += rows[a] * wo[a];
-      acc1 += rows[a + 1] * wo[a + 1];
-    }
-    if (a < S) acc0 += rows[a] * wo[a];
-    acc[o * acc_stride] = acc0 + acc1;
-  }
+  for (int o = 0; o < Q; ++o) acc[o * acc_stride] = products(rows, weights + o * S, S);
 }
 
 // Blocks of kBlock x kBlock cells: a trajectory's `relevant` map marks the blocks its patches
@@ -314,16 +316,9 @@ void trajectories(const Problem& p, vamppi::Ranges& ranges) {
               patch[a * segments + g] = __builtin_convertvector(raw, v16f);
             }
           }
-          for (int64_t o = 0; o < p.queries; ++o) {   // times each query's weights
-            const v16f* wo = weights.data() + o * n_vec;
-            v16f acc0 = v16f{}, acc1 = v16f{};
-            int64_t e = 0;
-            for (; e + 1 < n_vec; e += 2) {
-              acc0 += patch[e] * wo[e];
-              acc1 += patch[e + 1] * wo[e + 1];
-            }
-            if (e < n_vec) acc0 += patch[e] * wo[e];
-            acc[o * p.n_pts + q] = acc0 + acc1;     // summed across its lanes below
+          for (int64_t o = 0; o < p.queries; ++o) {   // times each query's weights, summed
+            acc[o * p.n_pts + q] =                    // across its lanes below
+                products(patch.data(), weights.data() + o * n_vec, n_vec);
           }
         }
         for (int64_t j = 0; j < width; j += kLanes) {
