@@ -177,7 +177,8 @@ constexpr int kBlockShift = 3, kBlock = 1 << kBlockShift;
 
 // Adds pose `s`'s visible ray points that lie in relevant blocks to the raw count map (padded)
 // and appends their cells to `cells` from `n_cells` on (for the clean-up). A ray's cells are
-// computed together (vector code), then walked to its first blocker.
+// computed together (vector code), then walked to its first blocker or its last point that
+// could count, whichever comes first.
 __attribute__((target("prefer-vector-width=512")))
 void add_visible(const Problem& p, const float* s, int32_t skip, const int32_t* relevant,
                  int64_t wb, uint16_t* map, int32_t* cells, int64_t& n_cells) {
@@ -210,7 +211,7 @@ void add_visible(const Problem& p, const float* s, int32_t skip, const int32_t* 
     // the walk can stop at the last point that could count (in a relevant block, not
     // skipped): what lies beyond it changes nothing read, and a ray with none is not walked
     int last = -1;
-    for (int k = 0; k < stride; ++k) {   // as visibility.ray_cells, in float32
+    for (int k = 0; k < stride; ++k) {   // visibility.ray_cells' cells, in float32
       const float fc = std::floor(c0 + along[k] * dc);
       const float fr = std::floor(r0 + along[k] * dr);
       inside[k] = fr >= 0.0f && fr < fh && fc >= 0.0f && fc < fw;
@@ -405,8 +406,9 @@ ffi::Error VaCountsImpl(ffi::Buffer<ffi::F32> mean, ffi::Buffer<ffi::F32> varian
   }
   Problem p{mean.typed_data(), variance.typed_data(), md[0], md[1], o[0], o[1], resolution,
             height, states.typed_data(), skip.typed_data(), sd[1], rows.typed_data(),
-            cols.typed_data(), rd[2], offsets.typed_data(), reach, base.data(), dir.data(), along.data(), rays,
-            points, stride, wt.data(), size, queries, lag, pad, gamma, out->typed_data()};
+            cols.typed_data(), rd[2], offsets.typed_data(), reach, base.data(), dir.data(),
+            along.data(), rays, points, stride, wt.data(), size, queries, lag, pad, gamma,
+            out->typed_data()};
   vamppi::parallel_ranges(sd[0], threads, kGrain,
                           [&p](vamppi::Ranges& ranges) { trajectories(p, ranges); });
   return ffi::Error::Success();
