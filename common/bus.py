@@ -26,6 +26,7 @@ from typing import Any, Generic, TypeVar
 import zenoh
 
 from common.config import BusConfig
+from common.memory import keep_large_buffers
 from common.messages import DecodeError, Header, InputRef, Message, decode, encode
 
 log = logging.getLogger(__name__)
@@ -67,31 +68,6 @@ def zenoh_config(cfg: BusConfig) -> zenoh.Config:
     zc.insert_json5("listen/endpoints", json.dumps(list(cfg.listen)))
     zc.insert_json5("scouting/multicast/enabled", json.dumps(bool(cfg.multicast_scouting)))
     return zc
-
-
-# glibc malloc: freed buffers above the (dynamic) mmap threshold go back to the OS,
-# and the heap's top is trimmed past the trim threshold, so every 1.3 MB map
-# message page-faulted its buffers in anew: 6 ms to encode one on this VM, 0.15 ms
-# once they stay (docs/bus.md). Raised once per process; a few hundred MB kept.
-MALLOC_MMAP_THRESHOLD = 64 << 20
-MALLOC_TRIM_THRESHOLD = 256 << 20
-_malloc_tuned: bool | None = None
-
-
-def keep_large_buffers() -> bool:
-    """Let freed message-sized buffers stay in the process (glibc only; a no-op
-    elsewhere). Returns whether the allocator took the settings."""
-    global _malloc_tuned
-    if _malloc_tuned is None:
-        try:
-            import ctypes
-            libc = ctypes.CDLL("libc.so.6")
-            _malloc_tuned = (libc.mallopt(-3, MALLOC_MMAP_THRESHOLD) == 1    # M_MMAP_THRESHOLD
-                             and libc.mallopt(-1, MALLOC_TRIM_THRESHOLD) == 1)  # M_TRIM_...
-        except (OSError, AttributeError):
-            _malloc_tuned = False
-        log.debug("malloc thresholds raised: %s", _malloc_tuned)
-    return _malloc_tuned
 
 
 def open_session(cfg: BusConfig) -> zenoh.Session:

@@ -5,9 +5,12 @@ wire it is one msgpack map::
 
     {"schema": "vamppi.State", "version": 1, "header": {...}, <fields>...}
 
-NumPy arrays travel as ``{"dtype": "<f4", "shape": [..], "data": <bytes>}``:
-decoding is exact (the float32 that leaves is the float32 that arrives) and
-never casts. `decode` validates schema name and version, every field's type,
+NumPy arrays travel as ``{"dtype": "<f4", "shape": [..], "pad": <bytes>, "data": <bytes>}``
+(``pad``: 0-15 zero bytes that start ``data`` on a 16-byte boundary of the payload,
+so that the arrays a receiver gets are aligned views; version 1 had no ``pad`` and
+is still read): decoding is exact (the float32 that leaves is the float32 that
+arrives) and never casts; arrays are copied once on the way out and not at all on the way in
+(common.wire). `decode` validates schema name and version, every field's type,
 every array's dtype and shape (named dimensions must agree across fields) and
 finiteness where the schema requires it, and raises `DecodeError` naming the
 field.
@@ -22,6 +25,8 @@ from typing import Any, ClassVar, TypeVar
 
 import msgpack
 import numpy as np
+
+from common import wire
 
 
 class DecodeError(ValueError):
@@ -80,7 +85,8 @@ class Header:
 @dataclass(frozen=True)
 class Message:
     SCHEMA: ClassVar[str] = ""
-    VERSION: ClassVar[int] = 1
+    VERSION: ClassVar[int] = 2                       # 2: arrays carry `pad`
+    VERSIONS_READ: ClassVar[tuple[int, ...]] = (1, 2)
     header: Header
 
 
@@ -172,10 +178,6 @@ M = TypeVar("M", bound=Message)
 
 # ----------------------------------------------------------------------------- codec
 def _encode_value(kind: Any, value: Any) -> Any:
-    if isinstance(kind, ArraySpec):
-        a = np.ascontiguousarray(value)
-        data = memoryview(a.reshape(-1).view(np.uint8))   # packed from the array's own buffer
-        return {"dtype": a.dtype.str, "shape": list(a.shape), "data": data}
     if kind == "float":
         return float(value)
     if kind == "int":
@@ -185,19 +187,58 @@ def _encode_value(kind: Any, value: Any) -> Any:
     return value
 
 
+@dataclass(frozen=True)
+class _Layout:
+    """What `encode` writes for one message type besides the values: the map's header
+    with the schema and version, and each field's packed key."""
+    prefix: bytes
+    fields: tuple[tuple[str, Any, bytes], ...]
+
+
+_LAYOUTS: dict[type, _Layout] = {}
+ALIGN = 16                      # array data starts at a multiple of this in the payload
+_ARRAY_DTYPE = wire.map_header(4) + msgpack.packb("dtype")
+_ARRAY_SHAPE, _ARRAY_PAD = msgpack.packb("shape"), msgpack.packb("pad")
+_ARRAY_DATA = msgpack.packb("data")
+
+
+def _layout(cls: type[Message]) -> _Layout:
+    layout = _LAYOUTS.get(cls)
+    if layout is None:
+        fields = tuple((f.name, f.metadata["kind"], msgpack.packb(f.name))
+                       for f in dataclasses.fields(cls) if f.name != "header")
+        prefix = (wire.map_header(3 + len(fields)) + msgpack.packb("schema")
+                  + msgpack.packb(cls.SCHEMA) + msgpack.packb("version")
+                  + msgpack.packb(cls.VERSION) + msgpack.packb("header"))
+        layout = _LAYOUTS[cls] = _Layout(prefix, fields)
+    return layout
+
+
 def encode(msg: Message) -> bytes:
-    """One message to msgpack bytes. Arrays keep their exact dtype and bytes."""
+    """One message to msgpack bytes. Arrays keep their exact dtype and bytes and are
+    copied once, straight from their own buffers into the payload (common.wire)."""
     h = msg.header
-    out: dict[str, Any] = {
-        "schema": msg.SCHEMA, "version": msg.VERSION,
-        "header": {"seq": int(h.seq), "stamp": float(h.stamp), "wall_time": float(h.wall_time),
-                   "source": h.source,
-                   "inputs": [[i.key, int(i.seq), float(i.stamp)] for i in h.inputs]},
-    }
-    for f in dataclasses.fields(msg):
-        if f.name != "header":
-            out[f.name] = _encode_value(f.metadata["kind"], getattr(msg, f.name))
-    return msgpack.packb(out, use_bin_type=True)
+    layout = _layout(type(msg))
+    chunks: list[Any] = [layout.prefix, msgpack.packb(
+        {"seq": int(h.seq), "stamp": float(h.stamp), "wall_time": float(h.wall_time),
+         "source": h.source, "inputs": [[i.key, int(i.seq), float(i.stamp)] for i in h.inputs]})]
+    pos = len(chunks[0]) + len(chunks[1])             # bytes written so far
+    for name, kind, key in layout.fields:
+        value = getattr(msg, name)
+        if isinstance(kind, ArraySpec):
+            a = np.ascontiguousarray(value)
+            data = memoryview(a.reshape(-1).view(np.uint8))
+            head = (key, _ARRAY_DTYPE, msgpack.packb(a.dtype.str), _ARRAY_SHAPE,
+                    msgpack.packb(list(a.shape)), _ARRAY_PAD)
+            tail = _ARRAY_DATA + wire.bin_header(data.nbytes)
+            pos += sum(map(len, head)) + 2            # + the pad's bin 8 header
+            pad = -(pos + len(tail)) % ALIGN
+            chunks += (*head, wire.bin_header(pad), bytes(pad), tail, data)
+            pos += pad + len(tail) + data.nbytes
+        else:
+            chunks += (key, msgpack.packb(_encode_value(kind, value), use_bin_type=True))
+            pos += len(chunks[-2]) + len(chunks[-1])
+    return b"".join(chunks)
 
 
 def _fail(schema: str, name: str, why: str) -> DecodeError:
@@ -232,8 +273,10 @@ def _decode_header(schema: str, raw: Any) -> Header:
 
 def _decode_array(schema: str, name: str, spec: ArraySpec, raw: Any,
                   dims: dict[str, int]) -> np.ndarray:
-    if not isinstance(raw, dict) or set(raw) != {"dtype", "shape", "data"}:
-        raise _fail(schema, name, "must be an array map {dtype, shape, data}")
+    if not isinstance(raw, dict) or set(raw) - {"pad"} != {"dtype", "shape", "data"}:
+        raise _fail(schema, name, "must be an array map {dtype, shape, [pad], data}")
+    if not isinstance(raw.get("pad", memoryview(b"")), memoryview):
+        raise _fail(schema, name, "pad must be bytes")
     if raw["dtype"] != spec.dtype:
         raise _fail(schema, name, f"has dtype {raw['dtype']!r}, expected {spec.dtype!r}")
     shape = raw["shape"]
@@ -249,26 +292,48 @@ def _decode_array(schema: str, name: str, spec: ArraySpec, raw: Any,
                 raise _fail(schema, name, f"has shape {tuple(shape)}: dimension {want} is "
                             f"{got} here but {dims[want]} in another field")
     data = raw["data"]
-    if not isinstance(data, bytes):
+    if not isinstance(data, memoryview):          # a msgpack bin (common.wire: a view)
         raise _fail(schema, name, "data must be bytes")
     dt = np.dtype(spec.dtype)
     if len(data) != dt.itemsize * math.prod(shape):
         raise _fail(schema, name, f"has {len(data)} bytes, shape {tuple(shape)} needs "
                     f"{dt.itemsize * math.prod(shape)}")
-    a = np.frombuffer(data, dtype=dt).reshape(shape)
-    if spec.finite and dt.kind == "f" and not np.isfinite(a).all():
+    a = np.frombuffer(data, dtype=dt).reshape(shape)     # a view of the payload
+    finite = spec.finite and dt.kind == "f"
+    if finite and spec.nonneg and _below_max_bits(a):
+        return a                                     # one pass (see _below_max_bits)
+    if finite and not np.isfinite(a).all():
         raise _fail(schema, name, f"has {int((~np.isfinite(a)).sum())} non-finite values")
     if spec.nonneg and (a < 0).any():
         raise _fail(schema, name, "has negative values")
     return a
 
 
-def decode(payload: bytes, expected: type[M] | None = None) -> M:
-    """msgpack bytes to a validated message; `expected` pins the type."""
+def _below_max_bits(a: np.ndarray) -> bool:
+    """Whether every value of float array `a` is finite and not negative, in one pass: as
+    unsigned integers of its width these are exactly the bit patterns 0 .. that of the
+    largest finite value (negatives, infinities and NaNs lie above). False also for -0.0,
+    which the caller's exact checks then accept."""
+    if not a.size:
+        return True
+    bits = np.dtype(f"{a.dtype.byteorder}u{a.dtype.itemsize}")
+    return bool(a.view(bits).max() <= np.array(np.finfo(a.dtype).max, a.dtype).view(bits))
+
+
+def _read(payload: bytes) -> Any:
     try:
-        raw = msgpack.unpackb(payload, raw=False, strict_map_key=True)
-    except Exception as exc:  # msgpack raises several types on truncated/garbage input
-        raise DecodeError(f"not a msgpack message: {type(exc).__name__}: {exc}") from None
+        return wire.read(payload)
+    except wire.WireError as exc:
+        raise DecodeError(f"not a msgpack message: {exc}") from None
+
+
+def decode(payload: bytes, expected: type[M] | None = None) -> M:
+    """msgpack bytes to a validated message; `expected` pins the type. Its arrays are
+    read-only views of `payload` (copied once first if it is not `bytes`, so that
+    nothing can change them)."""
+    if not isinstance(payload, bytes):
+        payload = bytes(payload)
+    raw = _read(payload)
     if not isinstance(raw, dict):
         raise DecodeError("not a message: the payload is not a msgpack map")
     schema = raw.get("schema")
@@ -277,8 +342,9 @@ def decode(payload: bytes, expected: type[M] | None = None) -> M:
         raise DecodeError(f"unknown schema {schema!r:.60}")
     if expected is not None and cls is not expected:
         raise DecodeError(f"{schema}: expected a {expected.SCHEMA} message")
-    if raw.get("version") != cls.VERSION:
-        raise _fail(schema, "version", f"is {raw.get('version')!r}, expected {cls.VERSION}")
+    if raw.get("version") not in cls.VERSIONS_READ:
+        raise _fail(schema, "version", f"is {raw.get('version')!r}, expected one of "
+                    f"{cls.VERSIONS_READ}")
     kwargs: dict[str, Any] = {"header": _decode_header(schema, raw.get("header"))}
     dims: dict[str, int] = {}
     known = {"schema", "version", "header"}
@@ -320,10 +386,7 @@ def decode(payload: bytes, expected: type[M] | None = None) -> M:
 def peek(payload: bytes) -> tuple[str, Header]:
     """Schema name and header of a payload without validating its fields (what a
     recorder or a timing tool needs); raises `DecodeError` like `decode`."""
-    try:
-        raw = msgpack.unpackb(payload, raw=False, strict_map_key=True)
-    except Exception as exc:
-        raise DecodeError(f"not a msgpack message: {type(exc).__name__}: {exc}") from None
+    raw = _read(payload)
     if not isinstance(raw, dict) or not isinstance(raw.get("schema"), str):
         raise DecodeError("not a message: no schema name")
     return raw["schema"], _decode_header(raw["schema"], raw.get("header"))
@@ -341,6 +404,9 @@ def json_schema(cls: type[Message]) -> dict[str, Any]:
                                    f"({', '.join(map(str, kind.shape))}), raw little-endian bytes",
                     "properties": {"dtype": {"const": kind.dtype},
                                    "shape": {"type": "array", "items": {"type": "integer"}},
+                                   "pad": {"type": "string", "contentEncoding": "base64",
+                                           "description": "0-15 zero bytes: data starts on a "
+                                                          "16-byte boundary of the payload"},
                                    "data": {"type": "string", "contentEncoding": "base64"}}}
         return {"float": {"type": "number"}, "int": {"type": "integer", "minimum": 0},
                 "str": {"type": "string"},

@@ -39,13 +39,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from common.config import Config
+from common.memory import keep_large_buffers
 from common.scenarios import scenario_of
 from deploy.timing import ChainLog, stats_ms
 from services.planner import mppi, native
 
 
 def device_info() -> dict[str, Any]:
-    """What ran the benchmark: CPU model or GPU name, JAX backend and version."""
+    """What ran the benchmark: CPU model or GPU name, JAX backend and version, and
+    whether the allocator keeps large freed buffers (common.memory; set here too)."""
     dev = jax.devices()[0]
     cpu = platform.processor() or platform.machine()
     try:
@@ -55,7 +57,7 @@ def device_info() -> dict[str, Any]:
     except OSError:
         pass
     return {"backend": jax.default_backend(), "device": dev.device_kind if dev.platform != "cpu"
-            else cpu, "cpu": cpu, "jax": jax.__version__}
+            else cpu, "cpu": cpu, "jax": jax.__version__, "malloc_tuned": keep_large_buffers()}
 
 
 @dataclass
@@ -200,7 +202,7 @@ def bench_bus(cfg: Config, reps: int, burst: int = 200) -> dict[str, Any]:
 
     import zenoh
 
-    from common.bus import keep_large_buffers, open_session
+    from common.bus import open_session
     from common.config import BusConfig
     from common.messages import Header, Map, decode, encode
     from deploy.launch import free_port
@@ -272,8 +274,7 @@ def bench_bus(cfg: Config, reps: int, burst: int = 200) -> dict[str, Any]:
             s.close()
     return {"benchmark": "bus", **device_info(), "zenoh": version("eclipse-zenoh"),
             "settings": {"endpoint": "tcp loopback, via a router", "reps": reps,
-                         "burst": burst, "interleaved": True,
-                         "malloc_tuned": keep_large_buffers()}, "cases": results}
+                         "burst": burst, "interleaved": True}, "cases": results}
 
 
 def bench_pipeline(cfg: Config, overrides: list[str], samples: list[int],

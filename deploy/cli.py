@@ -27,6 +27,7 @@ from typing import Any
 
 from common import compile_cache
 from common.config import Config, ConfigError, load_config
+from common.memory import keep_large_buffers
 
 
 def add_config_args(p: argparse.ArgumentParser) -> None:
@@ -464,6 +465,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> Any:
     args = build_parser().parse_args(argv)
     _setup_logging(args.verbose)
+    keep_large_buffers()
     compile_cache.enable()
     try:
         cfg = config_from_args(args)

@@ -99,6 +99,7 @@ def test_malformed_payloads_raise_the_clear_error(rng):
             "dtype": "<f8", "shape": [2], "data": np.array([0.0, np.nan]).tobytes()}}),
         "field 'variance' has negative": pack({**good, "variance": {
             **good["variance"], "data": (-np.abs(m.variance)).astype("<f4").tobytes()}}),
+        "pad must be bytes": pack({**good, "mean": {**good["mean"], "pad": 3}}),
         "field 'resolution' must be a number": pack({**good, "resolution": "0.2"}),
         "field 'resolution' must be finite": pack({**good, "resolution": float("inf")}),
         "field 'extra' is not in the schema": pack({**good, "extra": 1}),
@@ -110,3 +111,51 @@ def test_malformed_payloads_raise_the_clear_error(rng):
             decode(payload)
     with pytest.raises(DecodeError, match="expected a vamppi.State"):
         decode(encode(m), State)
+
+
+@pytest.mark.parametrize("cls", list(MESSAGE_TYPES.values()))
+def test_encode_writes_msgpacks_bytes_with_aligned_arrays(cls, rng):
+    for _ in range(5):
+        msg = sample(cls, rng)
+        payload = encode(msg)
+        raw = msgpack.unpackb(payload, raw=False)
+        assert msgpack.packb(raw, use_bin_type=True) == payload   # msgpack's own encoding
+        assert raw["version"] == cls.VERSION == 2
+        back = decode(payload, cls)
+        start = np.frombuffer(payload, np.uint8).ctypes.data
+        for f in dataclasses.fields(cls):
+            value = getattr(back, f.name)
+            if isinstance(value, np.ndarray):
+                assert raw[f.name]["pad"] == bytes(len(raw[f.name]["pad"]))
+                assert len(raw[f.name]["pad"]) < 16
+                assert (value.ctypes.data - start) % 16 == 0          # aligned ...
+                assert np.shares_memory(value, np.frombuffer(payload, np.uint8))  # ... views
+                assert not value.flags.writeable
+
+
+def test_version_1_payloads_without_pad_still_decode(rng):
+    m = sample(Map, rng)
+    raw = raw_of(m)
+    v1 = {**raw, "version": 1, **{k: {a: b for a, b in raw[k].items() if a != "pad"}
+                                  for k in ("mean", "variance", "origin")}}
+    assert same(decode(pack(v1), Map), m)
+
+
+def test_a_mutable_payload_is_copied_first(rng):
+    m = sample(Map, rng)
+    buf = bytearray(encode(m))
+    back = decode(buf, Map)
+    buf[:] = bytes(len(buf))
+    assert same(back, m)
+
+
+def test_nonnegative_fields_take_minus_zero_and_refuse_nan(rng):
+    m = sample(Map, rng)
+    var = np.abs(m.variance)
+    var.flat[0] = -0.0
+    assert decode(encode(dataclasses.replace(m, variance=var)), Map).variance.flat[0] == 0.0
+    for bad, why in ((np.nan, "1 non-finite"), (np.inf, "1 non-finite"), (-1e-30, "negative")):
+        var = np.abs(m.variance)
+        var.flat[-1] = bad
+        with pytest.raises(DecodeError, match=why):
+            decode(encode(dataclasses.replace(m, variance=var)), Map)
