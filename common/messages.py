@@ -3,7 +3,7 @@
 Every message is a frozen dataclass with a `header` and typed fields. On the
 wire it is one msgpack map::
 
-    {"schema": "vamppi.State", "version": 1, "header": {...}, <fields>...}
+    {"schema": "vamppi.State", "version": 2, "header": {...}, <fields>...}
 
 NumPy arrays travel as ``{"dtype": "<f4", "shape": [..], "pad": <bytes>, "data": <bytes>}``
 (``pad``: 0-15 zero bytes that start ``data`` on a 16-byte boundary of the payload,
