@@ -216,6 +216,19 @@ def bench_bus(cfg: Config, reps: int, burst: int = 200) -> dict[str, Any]:
         return Map(Header(i, 0.0, time.time(), "bench/0"), mean, var, np.zeros(2), 0.2)
 
     size = len(encode(make(0)))
+    # the codec alone, in this thread, before any session exists: what each end costs
+    # without the bus (its figure in the bus's latency also holds cache misses)
+    codec_t: dict[str, list[float]] = {"encode": [], "decode": []}
+    payload = encode(make(0))
+    for i in range(max(reps, 100) + 5):
+        t0 = time.perf_counter()
+        payload = encode(make(i))
+        t1 = time.perf_counter()
+        decode(payload, Map)
+        t2 = time.perf_counter()
+        if i >= 5:
+            codec_t["encode"].append(t1 - t0)
+            codec_t["decode"].append(t2 - t1)
     router = open_session(BusConfig("router", (), (endpoint,), False))
     pub_s = open_session(BusConfig("client", (endpoint,), (), False))
     sub_s = open_session(BusConfig("client", (endpoint,), (), False))
@@ -274,7 +287,8 @@ def bench_bus(cfg: Config, reps: int, burst: int = 200) -> dict[str, Any]:
             s.close()
     return {"benchmark": "bus", **device_info(), "zenoh": version("eclipse-zenoh"),
             "settings": {"endpoint": "tcp loopback, via a router", "reps": reps,
-                         "burst": burst, "interleaved": True}, "cases": results}
+                         "burst": burst, "interleaved": True},
+            "codec_alone": {k: stats_ms(v) for k, v in codec_t.items()}, "cases": results}
 
 
 def bench_pipeline(cfg: Config, overrides: list[str], samples: list[int],
@@ -477,6 +491,10 @@ def table(result: dict[str, Any]) -> str:
     for c in result["cases"]:
         lines.append(f"| {c['payload']} | {c['bytes']} | {c['median_ms']:.2f} | {c['p99_ms']:.2f} "
                      f"| {c['msgs_per_s']:.0f} | {c['mb_per_s']:.0f} |")
+    alone = result["codec_alone"]
+    lines += ["", "codec alone, one thread, no bus: encode "
+              f"{1e3 * alone['encode']['median_ms']:.0f} us, decode "
+              f"{1e3 * alone['decode']['median_ms']:.0f} us (medians)"]
     return "\n".join(lines)
 
 
