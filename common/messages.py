@@ -275,7 +275,7 @@ def _decode_array(schema: str, name: str, spec: ArraySpec, raw: Any,
                   dims: dict[str, int]) -> np.ndarray:
     if not isinstance(raw, dict) or set(raw) - {"pad"} != {"dtype", "shape", "data"}:
         raise _fail(schema, name, "must be an array map {dtype, shape, [pad], data}")
-    if not isinstance(raw.get("pad", memoryview(b"")), memoryview):
+    if "pad" in raw and not isinstance(raw["pad"], memoryview):
         raise _fail(schema, name, "pad must be bytes")
     if raw["dtype"] != spec.dtype:
         raise _fail(schema, name, f"has dtype {raw['dtype']!r}, expected {spec.dtype!r}")

@@ -219,7 +219,6 @@ def bench_bus(cfg: Config, reps: int, burst: int = 200) -> dict[str, Any]:
     # the codec alone, in this thread, before any session exists: what each end costs
     # without the bus (its figure in the bus's latency also holds cache misses)
     codec_t: dict[str, list[float]] = {"encode": [], "decode": []}
-    payload = encode(make(0))
     for i in range(max(reps, 100) + 5):
         t0 = time.perf_counter()
         payload = encode(make(i))
