@@ -52,7 +52,7 @@ def test_bus_bench_delivers_map_sized_messages_through_a_loopback_router():
         assert 0 < c["median_ms"] <= c["p99_ms"] and c["msgs_per_s"] > 0
     for stage in ("encode", "decode"):
         assert doc["codec_alone"][stage]["reps"] == 100
-        assert 0 < doc["codec_alone"][stage]["median_ms"] < doc["cases"][0]["median_ms"]
+        assert doc["codec_alone"][stage]["median_ms"] > 0
 
 
 def test_chain_log_follows_depth_map_cmd_to_the_first_state_that_applies_it():

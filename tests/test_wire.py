@@ -56,8 +56,10 @@ def test_every_truncation_fails_with_wire_error(v):
 
 def unusual(v, depth=0) -> bool:
     """What msgpack reads and no message holds: ext types, non-string keys, deep nests."""
-    if depth > wire.MAX_DEPTH or isinstance(v, msgpack.ExtType):
+    if isinstance(v, msgpack.ExtType):
         return True
+    if depth >= wire.MAX_DEPTH and isinstance(v, (list, tuple, dict)):
+        return True                                  # a container this deep, even empty
     if isinstance(v, (list, tuple)):
         return any(unusual(x, depth + 1) for x in v)
     if isinstance(v, dict):
@@ -85,6 +87,7 @@ def test_garbage_fails_with_wire_error_or_reads_as_msgpack_does(data):
 
 @pytest.mark.parametrize("payload,why", [
     (b"\x91" * 40 + b"\x90", "nested deeper"),
+    (b"\x91" * 32 + b"\x90", "nested deeper"),         # an empty container at the limit
     (b"\x81\x01\x02", "map key is a int"),
     (b"\xd4\x01\x00", "ext type"),
     (b"\xc1", "0xc1"),
