@@ -302,3 +302,26 @@ def test_native_kernel_clips_cells_off_the_map_like_the_jax_form(rng):
                                       VP.ray_grid(), w, resolution=0.2, height=1.0, gamma=0.3,
                                       rays=VP.rays, points=VP.points, lag=1, pad=5,
                                       n_threads=2))
+
+
+@pytest.mark.skipif(not native.available(), reason="the native kernel does not build here")
+def test_native_kernel_separable_and_general_paths_agree(rng):
+    """The paper's splat is an outer product, which the kernel's compile-time path uses
+    (rows combined first); weights nudged off rank one take the general path (the full
+    S x S products). On the same problem the two agree to float32 rounding and the nudge."""
+    from services.planner.visibility import offset_kernels
+    mean, variance, states, rows, cols = random_problem(rng)
+    w = offset_kernels(VP, OFFSETS) * VP.count_value
+    nudged = w.copy()
+    nudged[0, 0] += 2e-6 * w.max()   # a corner: off rank one by twice the kernel's 1e-6 tolerance
+    out = []
+    for weights in (w, nudged):
+        out.append(np.asarray(native.va_variance(
+            jnp.asarray(mean), jnp.asarray(variance), jnp.zeros(2), jnp.asarray(states[None]),
+            jnp.zeros((1, states.shape[0]), jnp.int32), jnp.asarray(rows[None]),
+            jnp.asarray(cols[None]), OFFSETS, VP.ray_grid(), weights.astype(np.float32),
+            resolution=0.2, height=VP.height_m, gamma=VP.gamma, rays=VP.rays,
+            points=VP.points, lag=1, pad=VP.splat_size // 2 + 1, n_threads=1)))
+    seen = out[0] < 0.5 * variance.max()
+    assert seen.mean() > 0.1                                    # the test has teeth
+    np.testing.assert_allclose(out[1], out[0], rtol=1e-4, atol=1e-7)

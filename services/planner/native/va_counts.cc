@@ -116,6 +116,12 @@ struct Problem {
   int64_t lag, pad;
   float gamma;
   float* out;
+  // the weights as outer products, when they are (the Gaussian splat is separable): query o's
+  // patch weights are u[which[o]] (a weight per patch row) times v[o] (per column, 16 lanes)
+  int64_t n_u;                // distinct u; 0: not separable
+  const float* u;             // (n_u, size)
+  const int32_t* which;       // (queries,)
+  const float* v;             // (queries, 16), zero past `size`
 };
 
 // exp(x) for x <= 0 as vector code: x = n ln2 + r (Cody-Waite, two-part ln2),
@@ -139,8 +145,7 @@ inline float exp_nonpositive(float x) {
   return x < -87.0f ? 0.0f : p * scale;
 }
 
-// sum over e < n of rows[e] * w[e], the even and the odd terms apart, then the two: both
-// patch paths below, so they give the same bits
+// sum over e < n of rows[e] * w[e], the even and the odd terms apart, then the two
 inline v16f products(const v16f* rows, const v16f* w, int64_t n) {
   v16f acc0 = v16f{}, acc1 = v16f{};
   int64_t e = 0;
@@ -152,14 +157,20 @@ inline v16f products(const v16f* rows, const v16f* w, int64_t n) {
   return acc0 + acc1;
 }
 
-// The paper's sizes (a 9 x 9 splat read at a cell and its four neighbours: patches of 11 x 11
-// raw counts, 5 queries) at compile time: one footprint point's 11 patch rows, each one
-// 16-lane vector, stay in registers for the 5 queries' products.
-constexpr int kFixedSize = 11, kFixedQueries = 5;
+// The paper's sizes at compile time (a 9 x 9 splat read at a cell and its four neighbours:
+// patches of 11 x 11 raw counts), for weights that are outer products, as the Gaussian
+// splat's are (Problem::u, v): one footprint point's 11 patch rows, each one 16-lane vector,
+// stay in registers; they are combined by each distinct u (a multiply-add of a row by a
+// scalar each), then times each query's column weights. For the paper's 5 queries (3
+// distinct u): 3 * 11 + 5 vector operations instead of the general path's 5 * 11 products
+// and sums. Fused multiply-adds here (the counts' sums are in another order than the JAX
+// form's anyway; tests/test_visibility.py bounds the difference).
+constexpr int kFixedSize = 11;
 
-template <int S, int Q>
-inline void fixed_products(const uint16_t* src, int64_t wp, const v16f* weights, v16f* acc,
-                           int64_t acc_stride) {
+template <int S>
+__attribute__((optimize("fp-contract=fast")))
+inline void separable_products(const uint16_t* src, int64_t wp, const Problem& p, v16f* acc,
+                               int64_t acc_stride) {
   static_assert(S <= kLanes && S >= 2, "a patch row is one 16-lane vector");
   v16f rows[S];
   for (int a = 0; a < S; ++a) {
@@ -167,7 +178,18 @@ inline void fixed_products(const uint16_t* src, int64_t wp, const v16f* weights,
     std::memcpy(&raw, src + a * wp, sizeof raw);
     rows[a] = __builtin_convertvector(raw, v16f);
   }
-  for (int o = 0; o < Q; ++o) acc[o * acc_stride] = products(rows, weights + o * S, S);
+  v16f cols[kMaxQueries];
+  for (int64_t j = 0; j < p.n_u; ++j) {
+    const float* u = p.u + j * S;
+    v16f sum = rows[0] * u[0];
+    for (int a = 1; a < S; ++a) sum += rows[a] * u[a];
+    cols[j] = sum;
+  }
+  for (int64_t o = 0; o < p.queries; ++o) {
+    v16f v;
+    std::memcpy(&v, p.v + o * kLanes, sizeof v);
+    acc[o * acc_stride] = cols[p.which[o]] * v;
+  }
 }
 
 // Blocks of kBlock x kBlock cells: a trajectory's `relevant` map marks the blocks its patches
@@ -258,7 +280,7 @@ void trajectories(const Problem& p, vamppi::Ranges& ranges) {
   const int64_t width_padded = (width + kLanes - 1) / kLanes * kLanes;
   std::vector<v16f> acc(static_cast<size_t>(width_padded), v16f{});
   std::vector<float> counts(static_cast<size_t>(width_padded));
-  const bool fixed = p.size == kFixedSize && p.queries == kFixedQueries;
+  const bool separable = p.size == kFixedSize && p.n_u > 0;
   for (int64_t k0, k1; ranges.next(k0, k1);) {
     for (int64_t k = k0; k < k1; ++k) {
       const float* st = p.states + k * p.t_len * kStateDim;
@@ -305,9 +327,8 @@ void trajectories(const Problem& p, vamppi::Ranges& ranges) {
           const int64_t r0 = std::clamp<int64_t>(ri[q], p.reach, p.h - 1 - p.reach);
           const int64_t c0 = std::clamp<int64_t>(ci[q], p.reach, p.w - 1 - p.reach);
           const uint16_t* src = map.data() + r0 * wp + c0;
-          if (fixed) {
-            fixed_products<kFixedSize, kFixedQueries>(src, wp, weights.data(), acc.data() + q,
-                                                      p.n_pts);
+          if (separable) {
+            separable_products<kFixedSize>(src, wp, p, acc.data() + q, p.n_pts);
             continue;
           }
           for (int64_t a = 0; a < p.size; ++a) {   // the patch's rows as floats
@@ -404,11 +425,44 @@ ffi::Error VaCountsImpl(ffi::Buffer<ffi::F32> mean, ffi::Buffer<ffi::F32> varian
       }
     }
   }
+  // each query's weights as an outer product u v (u from the column, v from the row of its
+  // largest weight), kept if that reproduces every weight to 1e-6 of the largest; equal u
+  // stored once
+  std::vector<float> us, vs(queries * kLanes, 0.0f);
+  std::vector<int32_t> which(queries);
+  bool separable = true;
+  for (int64_t q = 0; q < queries && separable; ++q) {
+    const float* wq = wt.data() + q * size * row_len;
+    int64_t a0 = 0, b0 = 0;
+    for (int64_t a = 0; a < size; ++a) {
+      for (int64_t b = 0; b < size; ++b) {
+        if (std::abs(wq[a * row_len + b]) > std::abs(wq[a0 * row_len + b0])) a0 = a, b0 = b;
+      }
+    }
+    const double top = wq[a0 * row_len + b0];
+    std::vector<float> u(size);
+    for (int64_t a = 0; a < size; ++a) {
+      u[a] = top != 0 ? static_cast<float>(wq[a * row_len + b0] / top) : 0.0f;
+    }
+    for (int64_t b = 0; b < size; ++b) vs[q * kLanes + b] = wq[a0 * row_len + b];
+    for (int64_t a = 0; a < size; ++a) {
+      for (int64_t b = 0; b < size; ++b) {
+        const double err = double(u[a]) * vs[q * kLanes + b] - wq[a * row_len + b];
+        if (std::abs(err) > 1e-6 * std::abs(top)) separable = false;
+      }
+    }
+    int64_t j = 0;
+    while (j * size < static_cast<int64_t>(us.size()) &&
+           !std::equal(u.begin(), u.end(), us.begin() + j * size)) ++j;
+    if (j * size == static_cast<int64_t>(us.size())) us.insert(us.end(), u.begin(), u.end());
+    which[q] = static_cast<int32_t>(j);
+  }
+  const int64_t n_u = separable ? static_cast<int64_t>(us.size()) / size : 0;
   Problem p{mean.typed_data(), variance.typed_data(), md[0], md[1], o[0], o[1], resolution,
             height, states.typed_data(), skip.typed_data(), sd[1], rows.typed_data(),
             cols.typed_data(), rd[2], offsets.typed_data(), reach, base.data(), dir.data(),
             along.data(), rays, points, stride, wt.data(), size, queries, lag, pad, gamma,
-            out->typed_data()};
+            out->typed_data(), n_u, us.data(), which.data(), vs.data()};
   vamppi::parallel_ranges(sd[0], threads, kGrain,
                           [&p](vamppi::Ranges& ranges) { trajectories(p, ranges); });
   return ffi::Error::Success();
