@@ -197,13 +197,24 @@ inline void separable_products(const uint16_t* src, int64_t wp, const Problem& p
 // nothing read.
 constexpr int kBlockShift = 3, kBlock = 1 << kBlockShift;
 
+// A thread's scratch for add_visible: every ray's points (rays x stride) and last point.
+struct Walks {
+  explicit Walks(int64_t rays, int64_t stride)
+      : store(static_cast<size_t>(4 * rays * stride + rays)),
+        inside(store.data()), cell(inside + rays * stride), at(cell + rays * stride),
+        counts(at + rays * stride), last(counts + rays * stride) {}
+  std::vector<int32_t> store;
+  int32_t *inside, *cell, *at, *counts, *last;
+};
+
 // Adds pose `s`'s visible ray points that lie in relevant blocks to the raw count map (padded)
-// and appends their cells to `cells` from `n_cells` on (for the clean-up). A ray's cells are
-// computed together (vector code), then walked to its first blocker or its last point that
-// could count, whichever comes first.
+// and appends their cells to `cells` from `n_cells` on (for the clean-up). Every ray's cells
+// are computed first (vector code, one ray after another: their relevance gathers overlap,
+// where a walk's unpredictable branches between them would stall each), then each ray is
+// walked to its first blocker or its last point that could count, whichever comes first.
 __attribute__((target("prefer-vector-width=512")))
 void add_visible(const Problem& p, const float* s, int32_t skip, const int32_t* relevant,
-                 int64_t wb, uint16_t* map, int32_t* cells, int64_t& n_cells) {
+                 int64_t wb, Walks& ws, uint16_t* map, int32_t* cells, int64_t& n_cells) {
   const float x = s[kX], y = s[kY];
   const float c = std::cos(s[kPsi]), sn = std::sin(s[kPsi]);
   const int32_t wp = static_cast<int32_t>(p.w + 2 * p.pad), w = static_cast<int32_t>(p.w);
@@ -216,8 +227,6 @@ void add_visible(const Problem& p, const float* s, int32_t skip, const int32_t* 
   const float fh = static_cast<float>(p.h), fw = static_cast<float>(p.w);
   const float inv = 1.0f / p.res;
   const int n = static_cast<int>(p.points);
-  int32_t inside[kMaxPoints], cell[kMaxPoints], rows[kMaxPoints], cols[kMaxPoints],
-      counts[kMaxPoints];
   int64_t nc = n_cells;
   const int stride = static_cast<int>(p.stride);
   for (int64_t r = 0; r < p.rays; ++r) {
@@ -230,9 +239,15 @@ void add_visible(const Problem& p, const float* s, int32_t skip, const int32_t* 
     const float r0 = (y + sn * base[0] + c * base[1] - p.oy) * inv;
     const float dc = (c * dir[0] - sn * dir[1]) * inv;
     const float dr = (sn * dir[0] + c * dir[1]) * inv;
+    int32_t* __restrict inside = ws.inside + r * stride;
+    int32_t* __restrict cell = ws.cell + r * stride;
+    int32_t* __restrict at = ws.at + r * stride;
+    int32_t* __restrict counts = ws.counts + r * stride;
     // the walk can stop at the last point that could count (in a relevant block, not
     // skipped): what lies beyond it changes nothing read, and a ray with none is not walked
     int last = -1;
+    // (16 lanes asked for: GCC's own choice here is 8, about 12 % slower)
+#pragma omp simd simdlen(16) reduction(max : last)
     for (int k = 0; k < stride; ++k) {   // visibility.ray_cells' cells, in float32
       const float fc = std::floor(c0 + along[k] * dc);
       const float fr = std::floor(r0 + along[k] * dr);
@@ -240,19 +255,24 @@ void add_visible(const Problem& p, const float* s, int32_t skip, const int32_t* 
       const int32_t row = static_cast<int32_t>(std::min(std::max(fr, 0.0f), fh - 1.0f));
       const int32_t col = static_cast<int32_t>(std::min(std::max(fc, 0.0f), fw - 1.0f));
       cell[k] = row * w + col;
-      rows[k] = row;
-      cols[k] = col;
+      at[k] = (row + pad) * wp + col + pad;
       const int32_t counts_here =
           relevant[(row >> kBlockShift) * bw + (col >> kBlockShift)] & (k >= skip) & (k < n);
       counts[k] = counts_here;
       last = std::max(last, counts_here ? k : -1);
     }
-    for (int k = 0; k <= last; ++k) {
+    ws.last[r] = last;
+  }
+  for (int64_t r = 0; r < p.rays; ++r) {
+    const int32_t* inside = ws.inside + r * stride;
+    const int32_t* cell = ws.cell + r * stride;
+    const int32_t* at = ws.at + r * stride;
+    const int32_t* counts = ws.counts + r * stride;
+    for (int k = 0; k <= ws.last[r]; ++k) {
       if (!inside[k]) break;              // off the map: blocks the ray and is not seen
       if (counts[k]) {                    // nearer points block but do not count
-        const int32_t at = (rows[k] + pad) * wp + cols[k] + pad;
-        ++map[at];
-        cells[nc++] = at;
+        ++map[at[k]];
+        cells[nc++] = at[k];
       }
       if (p.mean[cell[k]] > threshold) break;  // the first blocker is seen
     }
@@ -269,6 +289,7 @@ void trajectories(const Problem& p, vamppi::Ranges& ranges) {
   std::vector<uint16_t> map(static_cast<size_t>((p.h + 2 * p.pad) * wp + row_len), 0);
   std::vector<int32_t> cells(static_cast<size_t>(p.t_len * p.rays * p.points));
   int64_t n_cells = 0;
+  Walks walks(p.rays, p.stride);
   std::vector<float> prior(static_cast<size_t>(width));
   const int64_t n_vec = p.size * segments;                  // 16-lane vectors in a patch
   std::vector<v16f> patch(static_cast<size_t>(n_vec));
@@ -321,7 +342,7 @@ void trajectories(const Problem& p, vamppi::Ranges& ranges) {
         }
         // poses 0 .. i - lag
         add_visible(p, st + (i - p.lag) * kStateDim, skip[i - p.lag], relevant.data(), wb,
-                    map.data(), cells.data(), n_cells);
+                    walks, map.data(), cells.data(), n_cells);
         for (int64_t q = 0; q < p.n_pts; ++q) {
           // the patch around the footprint cell starts at the cell itself in padded coordinates
           const int64_t r0 = std::clamp<int64_t>(ri[q], p.reach, p.h - 1 - p.reach);
