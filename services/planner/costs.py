@@ -99,8 +99,17 @@ class MapView:
 def footprint_world(c: CostParams, states: Any) -> tuple[Any, Any]:
     """World x, y of the footprint points along a rollout: (N+1, P) each."""
     fp = jnp.asarray(c.footprint, jnp.float32)
-    return body_to_world(fp, states[:, S.X, None], states[:, S.Y, None], states[:, S.PSI, None],
-                         FAST)
+    psi = states[:, S.PSI]
+    # cos and sin materialised, one per step: XLA:CPU otherwise fuses their polynomials into
+    # every consumer and evaluates them again for each of the 5 P cells a step reads (a
+    # third of a deterministic iteration; docs/benchmarks.md, session 17). Multiplying by
+    # the identity is exact and is a dot, which no elementwise fusion crosses.
+    cs = jnp.dot(jnp.stack([FAST.cos(psi), FAST.sin(psi)], axis=-1), jnp.eye(2, dtype=jnp.float32),
+                 precision=jax.lax.Precision.HIGHEST)
+    cos, sin = cs[:, 0, None], cs[:, 1, None]
+    px, py = fp[:, 0], fp[:, 1]
+    return (states[:, S.X, None] + cos * px - sin * py,
+            states[:, S.Y, None] + sin * px + cos * py)
 
 
 # the five cells read per footprint point: centre, +x, -x, +y, -y (row, col offsets)
