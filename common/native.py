@@ -27,7 +27,7 @@ log = logging.getLogger(__name__)
 # -ffp-contract=off: no fused multiply-adds, so the kernels' float32 arithmetic is that of
 # their JAX forms; -fno-trapping-math: lets floor() be vector code, results unchanged
 FLAGS = ("-O3", "-march=native", "-std=c++17", "-shared", "-fPIC", "-pthread",
-         "-fopenmp-simd", "-ffp-contract=off", "-fno-trapping-math")
+         "-fopenmp-simd", "-ffp-contract=off", "-fno-trapping-math", "-fno-math-errno")
 
 
 class NativeUnavailable(RuntimeError):

@@ -228,6 +228,54 @@ def test_monte_carlo_surface_cost_agrees_with_the_closed_form(rng):
     assert 0.2 < cf.mean() < 4.8                 # neither all-0 nor all-5: the test has teeth
 
 
+@pytest.mark.skipif(not native.available(), reason="the native kernels do not build here")
+def test_native_expected_surface_matches_the_closed_form(rng):
+    """surface.cc against costs.surface_expectation's closed form on a random map, for
+    K = 7 random rollouts partly off the map, variances from 0 (the plain indicators:
+    the same bits) through seen to unseen (3.0); one thread or three give the same."""
+    from services.planner.costs import (
+        CostParams,
+        footprint_cells,
+        ground_now,
+        query_cells,
+        surface_expectation,
+    )
+    c = CostParams.from_config(CFG)
+    n, k, steps, p = 80, 7, PP.horizon + 1, P_POINTS
+    mean = jnp.asarray(rng.normal(size=(n, n)) * 0.4, jnp.float32)
+    m = MapView(mean, jnp.zeros((n, n)), jnp.zeros(2), 0.2)
+    states = np.zeros((k, steps, 6), np.float32)
+    states[..., S.X] = rng.uniform(-1.0, 17.0, (k, steps))       # the map is 16 m across
+    states[..., S.Y] = rng.uniform(-1.0, 17.0, (k, steps))
+    states[..., S.PSI] = rng.uniform(-4.0, 4.0, (k, steps))
+    states = jnp.asarray(states)
+    scale = rng.choice([0.0, 0.05, 0.5, np.sqrt(3.0)], (k, steps, 5 * p))
+    qvar = jnp.asarray((scale * rng.uniform(0.2, 1.0, scale.shape)) ** 2, jnp.float32)
+    rows, cols, outside = jax.vmap(footprint_cells, in_axes=(None, None, 0))(c, m, states)
+    h0 = jax.vmap(ground_now, in_axes=(None, 0))(m, states)
+
+    def reference(var):
+        def one(st, v, g):
+            return surface_expectation(c, m, *query_cells(c, m, st), v, g)
+        return np.asarray(jax.vmap(one)(states, var, h0))
+
+    def kernel(var, threads):
+        return np.asarray(native.expected_surface(
+            mean, rows, cols, outside, var, h0, resolution=0.2, grad=c.grad_threshold,
+            step=c.step_threshold, height=c.height_threshold, n_across=c.n_across,
+            n_threads=threads))
+
+    got = kernel(qvar, 1)
+    np.testing.assert_array_equal(got, kernel(qvar, 3))
+    ref = reference(qvar)
+    # erfc (A&S 7.1.26, |error| < 1.5e-7) against XLA's erf, five probabilities a point
+    np.testing.assert_allclose(got, ref, rtol=0, atol=5e-6)
+    assert np.asarray(outside).any() and not np.asarray(outside).all()
+    assert 0.2 < ref[~np.asarray(outside)].mean() < 4.8     # neither all-0 nor all-5
+    zero = jnp.zeros_like(qvar)
+    np.testing.assert_array_equal(kernel(zero, 1), reference(zero))
+
+
 def test_non_finite_costs_get_no_weight_and_never_poison_the_nominal():
     m = flat_map()
     nan_map = MapView(m.mean.at[:, :].set(jnp.nan), m.variance, m.origin, m.resolution)

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from common.config import Config
-from common.geometry import body_to_world, footprint_points, wrap_angle
+from common.geometry import footprint_points, wrap_angle
 from services.planner.fastmath import FAST
 from services.plant.dynamics import S, accelerations
 
@@ -229,10 +229,11 @@ def ground_now(m: MapView, states: Any) -> Any:
 
 
 def rollout_cost(c: CostParams, states: Any, xdots: Any, goal: Any, m: MapView,
-                 query_var: Any, key: Any = None) -> Any:
+                 query_var: Any, key: Any = None, expected: Any = None) -> Any:
     """Cost terms (6,) of one rollout: states (N+1, 6), dx/dt (N, 6), goal (3,),
     `query_var` (N+1, 5 P) the variance met at the cells of `query_cells`; `key`
-    for the Monte-Carlo surface estimate."""
+    for the Monte-Carlo surface estimate; `expected` (N+1, P) the surface expectation
+    where the caller has it already (VA-MPPI's native kernel), else computed here."""
     n = c.horizon
     d = jnp.hypot(states[:, S.X] - goal[0], states[:, S.Y] - goal[1])
     V = states[:, S.V]
@@ -247,9 +248,10 @@ def rollout_cost(c: CostParams, states: Any, xdots: Any, goal: Any, m: MapView,
         (jnp.abs(a_y) >= c.a_roll).astype(jnp.float32) + (a_tot >= c.a_max)
         + (jnp.abs(beta) >= c.beta_max) + (jnp.abs(states[:-1, S.v]) >= c.v_lat_max))
 
-    rows, cols, outside = query_cells(c, m, states)
-    expected = surface_expectation(c, m, rows, cols, outside, query_var, ground_now(m, states),
-                                   key)
+    if expected is None:
+        rows, cols, outside = query_cells(c, m, states)
+        expected = surface_expectation(c, m, rows, cols, outside, query_var,
+                                       ground_now(m, states), key)
     s_surf = c.w_surface * jnp.sum(absorbing_crash(c, expected, query_var))
 
     d0 = d[0]

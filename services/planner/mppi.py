@@ -25,7 +25,14 @@ import jax.numpy as jnp
 
 from common.config import Config, VehicleConfig
 from services.planner import native
-from services.planner.costs import OFFSETS, CostParams, MapView, footprint_cells, rollout_cost
+from services.planner.costs import (
+    OFFSETS,
+    CostParams,
+    MapView,
+    footprint_cells,
+    ground_now,
+    rollout_cost,
+)
 from services.planner.fastmath import FAST
 from services.planner.visibility import VisibilityParams, batched_decayed_variance
 from services.plant.dynamics import ControlLimits, clamp_control, derivatives, rk4_step
@@ -146,6 +153,24 @@ def query_variance(params: PlannerParams, m: MapView, states: jax.Array) -> jax.
                                     m.resolution, states, rows, cols, OFFSETS)
 
 
+def expected_surface(params: PlannerParams, m: MapView, states: jax.Array, qvar: jax.Array
+                     ) -> jax.Array | None:
+    """VA-MPPI's expected surface cost of every rollout (K, N+1, P) from the native kernel
+    (closed form, on a CPU: `planner.va_kernel`), or None: `rollout_cost` computes it in
+    JAX (the deterministic and prescient controllers' indicators, the Monte-Carlo
+    estimate, an accelerator)."""
+    c = params.cost
+    if (params.controller != "va" or c.estimator != "closed_form"
+            or not native.use_native(params.visibility.backend)):
+        return None
+    rows, cols, outside = jax.vmap(footprint_cells, in_axes=(None, None, 0))(c, m, states)
+    h0 = jax.vmap(ground_now, in_axes=(None, 0))(m, states)
+    return native.expected_surface(m.mean, rows, cols, outside, qvar, h0, resolution=m.resolution,
+                                   grad=c.grad_threshold, step=c.step_threshold,
+                                   height=c.height_threshold, n_across=c.n_across,
+                                   n_threads=native.threads(params.threads))
+
+
 def sample_noise(params: PlannerParams, key: jax.Array) -> jax.Array:
     """(K, N, 2) perturbations of the nominal, std `noise_std` at every step. With
     rho = `noise_correlation` > 0 each sample is an AR(1) sequence along the horizon,
@@ -194,8 +219,10 @@ def _iteration(params: PlannerParams, state: PlannerState, x0, u_prev, goal, m: 
     states, applied, xdots = rollouts(params, x0, u_prev, candidates)
 
     qvar = query_variance(params, m, states)
-    terms = jax.vmap(rollout_cost, in_axes=(None, 0, 0, None, None, 0, 0))(
-        params.cost, states, xdots, goal, m, qvar, jax.random.split(mc, k))
+    expected = expected_surface(params, m, states, qvar)
+    terms = jax.vmap(rollout_cost, in_axes=(None, 0, 0, None, None, 0, 0,
+                                            None if expected is None else 0))(
+        params.cost, states, xdots, goal, m, qvar, jax.random.split(mc, k), expected)
     cost = jnp.sum(terms, axis=-1)
     finite = jnp.isfinite(cost)
     cost = jnp.where(finite, cost, jnp.inf)

@@ -8,6 +8,9 @@
 - rollout.cc, the K rollouts of the prediction model (mppi.rollout vmapped),
   chosen the same way by `planner.rollout_kernel`; tests/test_planner.py checks it
   against the JAX form and the plant's float64 model.
+- surface.cc, VA-MPPI's expected surface cost (costs.surface_expectation, closed
+  form) for all rollouts, used with the native visibility kernel
+  (`planner.va_kernel`); tests/test_planner.py checks it against the JAX form.
 
 The library (common/native.py builds it) is compiled next to its sources; `make` builds
 it at install, and the first use builds it if it is missing.
@@ -27,9 +30,11 @@ import numpy as np
 from common import native as common_native
 from common.native import Library, NativeUnavailable
 
-LIBRARY = Library(tuple(Path(__file__).with_name(n) for n in ("va_counts.cc", "rollout.cc")),
-                  (Path(__file__).with_name("parallel.h"),))
-TARGETS = {"vamppi_va_counts": "VaCounts", "vamppi_rollout": "Rollout"}   # FFI name: symbol
+LIBRARY = Library(tuple(Path(__file__).with_name(n)
+                        for n in ("va_counts.cc", "rollout.cc", "surface.cc")),
+                  tuple(Path(__file__).with_name(n) for n in ("parallel.h", "vecmath.h")))
+TARGETS = {"vamppi_va_counts": "VaCounts", "vamppi_rollout": "Rollout",   # FFI name: symbol
+           "vamppi_surface": "Surface"}
 _WHAT = "the native planner kernels"
 
 
@@ -85,6 +90,25 @@ def va_variance(mean: Any, variance: Any, origin: Any, states: Any, skip: Any, r
                 resolution=np.float32(resolution), height=np.float32(height),
                 gamma=np.float32(gamma), rays=np.int64(rays), points=np.int64(points),
                 lag=np.int64(lag), pad=np.int64(pad), threads=np.int64(n_threads))
+
+
+def expected_surface(mean: Any, rows: Any, cols: Any, outside: Any, variance: Any, h0: Any,
+                     *, resolution: float, grad: float, step: float, height: float,
+                     n_across: int, n_threads: int) -> Any:
+    """costs.surface_expectation's closed form for K trajectories at once: the expected
+    tripped indicators (K, T, P) at footprint cells rows, cols (K, T, P) and `outside`
+    (costs.footprint_cells), `variance` (K, T, 5 P) met at their five query cells, h0 (K,)
+    the ground under the vehicle now; see surface.cc."""
+    out = jax.ShapeDtypeStruct(rows.shape, jnp.float32)
+    _register()
+    call = jax.ffi.ffi_call("vamppi_surface", out, vmap_method="sequential")
+    two_res = 2.0 * resolution                        # as costs.indicator_quantities has it
+    return call(jnp.asarray(mean, jnp.float32), rows.astype(jnp.int32), cols.astype(jnp.int32),
+                outside.astype(jnp.int32), jnp.asarray(variance, jnp.float32),
+                jnp.asarray(h0, jnp.float32),
+                two_res=np.float32(two_res), two_res2=np.float32(two_res ** 2),
+                grad=np.float32(grad), step=np.float32(step), height=np.float32(height),
+                n_across=np.int64(n_across), threads=np.int64(n_threads))
 
 
 # rollout.cc's `Model`, in its order: the vehicle's fields, then the control limits

@@ -43,6 +43,7 @@
 #include <vector>
 
 #include "parallel.h"
+#include "vecmath.h"
 #include "xla/ffi/api/ffi.h"
 
 namespace ffi = xla::ffi;
@@ -123,27 +124,6 @@ struct Problem {
   const int32_t* which;       // (queries,)
   const float* v;             // (queries, 16), zero past `size`
 };
-
-// exp(x) for x <= 0 as vector code: x = n ln2 + r (Cody-Waite, two-part ln2),
-// |r| <= ln2 / 2, e^r by its degree-6 Taylor polynomial (remainder r^7 / 7! < 1.3e-7
-// relative), times 2^n built in the exponent bits; 0 below -87 (the end of the normal
-// range: a variance times e^-87 is nothing a cost can feel).
-inline float exp_nonpositive(float x) {
-  const float xc = std::max(x, -87.0f);
-  const float n = std::nearbyint(xc * 1.44269504f);
-  const float r = (xc - n * 0.693145752f) - n * 1.42860677e-6f;
-  float p = 1.0f / 720.0f;
-  p = p * r + 1.0f / 120.0f;
-  p = p * r + 1.0f / 24.0f;
-  p = p * r + 1.0f / 6.0f;
-  p = p * r + 0.5f;
-  p = p * r + 1.0f;
-  p = p * r + 1.0f;
-  const int32_t bits = (static_cast<int32_t>(n) + 127) << 23;
-  float scale;
-  std::memcpy(&scale, &bits, sizeof scale);
-  return x < -87.0f ? 0.0f : p * scale;
-}
 
 // sum over e < n of rows[e] * w[e], the even and the odd terms apart, then the two
 inline v16f products(const v16f* rows, const v16f* w, int64_t n) {
@@ -372,7 +352,7 @@ void trajectories(const Problem& p, vamppi::Ranges& ranges) {
         const float* pr = prior.data();
         const float* cn = counts.data();
 #pragma omp simd
-        for (int64_t j = 0; j < width; ++j) oi[j] = pr[j] * exp_nonpositive(g * cn[j]);
+        for (int64_t j = 0; j < width; ++j) oi[j] = pr[j] * vamppi::exp_nonpositive(g * cn[j]);
       }
       for (int64_t j = 0; j < n_cells; ++j) map[cells[j]] = 0;
     }
