@@ -47,7 +47,7 @@ struct Problem {
 };
 
 // erfc(z), Abramowitz & Stegun 7.1.26 for |z| and erfc(-z) = 2 - erfc(z)
-inline float erfc_as(float z) {
+__attribute__((always_inline)) inline float erfc_as(float z) {
   const float a = std::abs(z);
   const float t = 1.0f / (1.0f + 0.3275911f * a);
   float p = 1.061405429f;
@@ -60,7 +60,7 @@ inline float erfc_as(float z) {
 }
 
 // P(|X| > threshold) for X ~ N(mean, var); the indicator where var is 0 (costs.exceed_prob)
-inline float exceed(float mean, float var, float threshold) {
+__attribute__((always_inline)) inline float exceed(float mean, float var, float threshold) {
   const float s = std::sqrt(std::max(var, 0.0f));
   const float inv = 1.0f / std::max(s * 1.41421356f, 1e-30f);
   const float p = 0.5f * (erfc_as((threshold + mean) * inv) + erfc_as((threshold - mean) * inv));
@@ -68,6 +68,7 @@ inline float exceed(float mean, float var, float threshold) {
   return s > 0.0f ? std::min(std::max(p, 0.0f), 1.0f) : indicator;
 }
 
+__attribute__((target("prefer-vector-width=512")))
 void trajectories(const Problem& p, vamppi::Ranges& ranges) {
   const int64_t n_pts = p.n_pts, n = p.t_len * n_pts;
   const int32_t h = static_cast<int32_t>(p.h), w = static_cast<int32_t>(p.w);

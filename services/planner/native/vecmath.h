@@ -13,7 +13,7 @@ namespace vamppi {
 // |r| <= ln2 / 2, e^r by its degree-6 Taylor polynomial (remainder r^7 / 7! < 1.3e-7
 // relative), times 2^n built in the exponent bits; 0 below -87 (the end of the normal
 // range: a variance times e^-87 is nothing a cost can feel).
-inline float exp_nonpositive(float x) {
+__attribute__((always_inline)) inline float exp_nonpositive(float x) {
   const float xc = std::max(x, -87.0f);
   const float n = std::nearbyint(xc * 1.44269504f);
   const float r = (xc - n * 0.693145752f) - n * 1.42860677e-6f;
