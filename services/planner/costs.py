@@ -101,9 +101,10 @@ def footprint_world(c: CostParams, states: Any) -> tuple[Any, Any]:
     fp = jnp.asarray(c.footprint, jnp.float32)
     psi = states[:, S.PSI]
     # cos and sin materialised, one per step: XLA:CPU otherwise fuses their polynomials into
-    # every consumer and evaluates them again for each of the 5 P cells a step reads (a
-    # third of a deterministic iteration; docs/benchmarks.md, session 17). Multiplying by
-    # the identity is exact and is a dot, which no elementwise fusion crosses.
+    # every consumer and evaluates them again for each of the 5 P cells a step reads (2.8 of
+    # the deterministic iteration's 20.7 ms at K = 800; docs/benchmarks.md, session 17).
+    # Multiplying by the identity is exact and is a dot, which no elementwise fusion crosses
+    # (XLA:CPU expands optimization_barrier before fusing).
     cs = jnp.dot(jnp.stack([FAST.cos(psi), FAST.sin(psi)], axis=-1), jnp.eye(2, dtype=jnp.float32),
                  precision=jax.lax.Precision.HIGHEST)
     cos, sin = cs[:, 0, None], cs[:, 1, None]

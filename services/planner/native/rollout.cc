@@ -119,7 +119,7 @@ inline vf tan(vf x) {
   return (odd ? -a.c : a.s) / (odd ? a.s : a.c);
 }
 
-// exp(x) for x <= 0 (as in va_counts.cc): Cody-Waite reduction, degree-6 polynomial
+// exp(x) for x <= 0 (vecmath.h's, on this file's vectors): Cody-Waite reduction, degree-6 polynomial
 inline vf exp_nonpositive(vf x) {
   const vf xc = vmax(x, splat(-87.0f));
   const vf n = round_even(xc * 1.44269504f);
