@@ -14,7 +14,8 @@
 // Inputs (the handler checks their shapes agree and returns an error if not):
 //   mean (H, W) f32, rows, cols (K, T, P) i32 the footprint points' cells (clipped one
 //   cell inside the map, as costs.footprint_cells has them; clamped here again, so that
-//   nothing is read outside the map), outside (K, T, P) i32 1 for points off the map, variance (K, T, 5 P) f32 the variance met at the five cells (query-major, as
+//   nothing is read outside the map), outside (K, T, P) i32 1 for points off the map,
+//   variance (K, T, 5 P) f32 the variance met at the five cells (query-major, as
 //   va_counts.cc writes it), h0 (K,) f32 the ground under the vehicle now.
 // Output: expected tripped indicators (K, T, P) f32.
 
