@@ -276,6 +276,39 @@ def test_native_expected_surface_matches_the_closed_form(rng):
     np.testing.assert_array_equal(kernel(zero, 1), reference(zero))
 
 
+@pytest.mark.skipif(not native.available(), reason="the native kernels do not build here")
+def test_fused_surface_kernel_equals_the_update_then_the_surface(monkeypatch):
+    """VA-MPPI's iteration takes the expected surface cost from the variance update fused
+    with surface.h (va_counts.cc, `vamppi_va_surface`); on a planning problem (K = 64
+    rollouts on the offroad map) it is bit for bit the two kernels one after the other
+    (va_counts.cc, then surface.cc), with one thread or three."""
+    from deploy.bench import planner_inputs
+    cfg = load_config(overrides=['planner.controller="va"', "planner.samples=64"])
+    x0, u0, _goal, mean, var, origin, res = planner_inputs(cfg)
+    params = mppi.PlannerParams.from_config(cfg)
+    m = MapView(jnp.asarray(mean), jnp.asarray(var), jnp.asarray(origin), res)
+    noise = mppi.sample_noise(params, jax.random.PRNGKey(3))
+    states = jax.jit(jax.vmap(lambda e: mppi.rollout(params, jnp.asarray(x0), jnp.asarray(u0),
+                                                     e)[0]))(noise)
+
+    def terms(p):
+        return jax.jit(lambda s: mppi.surface_terms(p, m, s))(states)
+
+    def threads(n):
+        return dataclasses.replace(params, threads=n,
+                                   visibility=dataclasses.replace(params.visibility, threads=n))
+
+    qvar, fused = terms(threads(3))
+    assert qvar is None
+    np.testing.assert_array_equal(np.asarray(terms(threads(1))[1]), np.asarray(fused))
+    monkeypatch.setattr(mppi, "native_applies", lambda *a: False)
+    qvar, split = terms(params)
+    assert qvar is not None
+    np.testing.assert_array_equal(np.asarray(split), np.asarray(fused))
+    fused = np.asarray(fused)
+    assert 0.01 < fused.mean() < 4.0 and (fused > 0.5).any()   # a cost with something in it
+
+
 def test_non_finite_costs_get_no_weight_and_never_poison_the_nominal():
     m = flat_map()
     nan_map = MapView(m.mean.at[:, :].set(jnp.nan), m.variance, m.origin, m.resolution)

@@ -232,9 +232,10 @@ def ground_now(m: MapView, states: Any) -> Any:
 def rollout_cost(c: CostParams, states: Any, xdots: Any, goal: Any, m: MapView,
                  query_var: Any, key: Any = None, expected: Any = None) -> Any:
     """Cost terms (6,) of one rollout: states (N+1, 6), dx/dt (N, 6), goal (3,),
-    `query_var` (N+1, 5 P) the variance met at the cells of `query_cells`; `key`
-    for the Monte-Carlo surface estimate; `expected` (N+1, P) the surface expectation
-    where the caller has it already (VA-MPPI's native kernel), else computed here."""
+    `query_var` (N+1, 5 P) the variance met at the cells of `query_cells` (None when
+    `expected` is given and `crash_variance` is 0: nothing reads it); `key` for the
+    Monte-Carlo surface estimate; `expected` (N+1, P) the surface expectation where the
+    caller has it already (VA-MPPI's native kernels), else computed here."""
     n = c.horizon
     d = jnp.hypot(states[:, S.X] - goal[0], states[:, S.Y] - goal[1])
     V = states[:, S.V]

@@ -34,7 +34,7 @@ from services.planner.costs import (
     rollout_cost,
 )
 from services.planner.fastmath import FAST
-from services.planner.visibility import VisibilityParams, batched_decayed_variance
+from services.planner.visibility import VisibilityParams, batched_decayed_variance, native_applies
 from services.plant.dynamics import ControlLimits, clamp_control, derivatives, rk4_step
 
 
@@ -153,22 +153,31 @@ def query_variance(params: PlannerParams, m: MapView, states: jax.Array) -> jax.
                                     m.resolution, states, rows, cols, OFFSETS)
 
 
-def expected_surface(params: PlannerParams, m: MapView, states: jax.Array, qvar: jax.Array
-                     ) -> jax.Array | None:
-    """VA-MPPI's expected surface cost of every rollout (K, N+1, P) from the native kernel
-    (closed form, on a CPU: `planner.va_kernel`), or None: `rollout_cost` computes it in
-    JAX (the deterministic and prescient controllers' indicators, the Monte-Carlo
-    estimate, an accelerator)."""
+def surface_terms(params: PlannerParams, m: MapView, states: jax.Array
+                  ) -> tuple[jax.Array | None, jax.Array | None]:
+    """The query variance (K, N+1, 5 P) and VA-MPPI's expected surface cost (K, N+1, P)
+    of every rollout, either None. The expected cost comes from the native kernels
+    (closed form, on a CPU: `planner.va_kernel`), fused into the variance update when
+    nothing else needs the variances (`crash_variance` 0), the variance then None;
+    otherwise it is None and `rollout_cost` computes it in JAX (the deterministic and
+    prescient controllers' indicators, the Monte-Carlo estimate, an accelerator)."""
     c = params.cost
     if (params.controller != "va" or c.estimator != "closed_form"
             or not native.use_native(params.visibility.backend)):
-        return None
+        return query_variance(params, m, states), None
     rows, cols, outside = jax.vmap(footprint_cells, in_axes=(None, None, 0))(c, m, states)
     h0 = jax.vmap(ground_now, in_axes=(None, 0))(m, states)
-    return native.expected_surface(m.mean, rows, cols, outside, qvar, h0, resolution=m.resolution,
-                                   grad=c.grad_threshold, step=c.step_threshold,
-                                   height=c.height_threshold, n_across=c.n_across,
-                                   n_threads=native.threads(params.threads))
+    if c.crash_variance <= 0.0 and native_applies(params.visibility, states.shape[1]):
+        spec = native.SurfaceSpec(outside, h0, c.grad_threshold, c.step_threshold,
+                                  c.height_threshold, c.n_across)
+        return None, batched_decayed_variance(params.visibility, m.mean, m.variance, m.origin,
+                                              m.resolution, states, rows, cols, OFFSETS, spec)
+    qvar = query_variance(params, m, states)
+    return qvar, native.expected_surface(m.mean, rows, cols, outside, qvar, h0,
+                                         resolution=m.resolution, grad=c.grad_threshold,
+                                         step=c.step_threshold, height=c.height_threshold,
+                                         n_across=c.n_across,
+                                         n_threads=native.threads(params.threads))
 
 
 def sample_noise(params: PlannerParams, key: jax.Array) -> jax.Array:
@@ -218,9 +227,9 @@ def _iteration(params: PlannerParams, state: PlannerState, x0, u_prev, goal, m: 
             brake_sequences(params, state.nominal))
     states, applied, xdots = rollouts(params, x0, u_prev, candidates)
 
-    qvar = query_variance(params, m, states)
-    expected = expected_surface(params, m, states, qvar)
-    terms = jax.vmap(rollout_cost, in_axes=(None, 0, 0, None, None, 0, 0,
+    qvar, expected = surface_terms(params, m, states)
+    terms = jax.vmap(rollout_cost, in_axes=(None, 0, 0, None, None,
+                                            None if qvar is None else 0, 0,
                                             None if expected is None else 0))(
         params.cost, states, xdots, goal, m, qvar, jax.random.split(mc, k), expected)
     cost = jnp.sum(terms, axis=-1)

@@ -159,9 +159,17 @@ def offset_kernels(vp: VisibilityParams, offsets: tuple[tuple[int, int], ...]) -
     return out.reshape(size * size, len(offsets))
 
 
+def native_applies(vp: VisibilityParams, t_len: int) -> bool:
+    """Whether `batched_decayed_variance` runs the native kernel for horizons of T = t_len
+    poses (`planner.va_kernel` here, a lag inside the horizon, uint16 counts)."""
+    return (vp.lag_steps < t_len and t_len * vp.rays * vp.points < 2 ** 16
+            and native.use_native(vp.backend))
+
+
 def batched_decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, origin: Any,
                              resolution: float, states: Any, rows: Any, cols: Any,
-                             offsets: tuple[tuple[int, int], ...]) -> Any:
+                             offsets: tuple[tuple[int, int], ...],
+                             surface: native.SurfaceSpec | None = None) -> Any:
     """Variance K trajectories meet at the cells around their footprint points.
 
     states (K, N+1, 6); rows/cols (K, N+1, P) int, the footprint points' cells
@@ -169,6 +177,8 @@ def batched_decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, ori
     offset-major: block k is the cells rows + offsets[k][0], cols + offsets[k][1].
     Step i sees the points of poses 0 .. i-lag only (steps before lag: the prior);
     of each ray, the points before `uncounted_points` block it but do not count.
+    With `surface` (native kernel only: `native_applies`), the expected surface cost
+    (K, N+1, P) computed from those variances instead (native.va_variance).
 
     The visible points of poses 0 .. N-lag are found at once, vectorised over K and
     N. Then raw count maps (visible points per cell, unsplatted; `chunk`
@@ -192,13 +202,14 @@ def batched_decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, ori
     n_steps = rows.shape[1] - 1
     skip = uncounted_points(vp, states)                          # (K, N+1)
     # the same in C++ on a CPU (its raw counts are uint16: at most T * rays * points a cell)
-    if (lag <= n_steps and rows.shape[1] * vp.rays * vp.points < 2 ** 16
-            and native.use_native(vp.backend)):
+    if native_applies(vp, rows.shape[1]):
         return native.va_variance(mean, variance, origin, states, skip, rows, cols, offsets,
                                   vp.ray_grid(), weights, resolution=resolution,
                                   height=vp.height_m, gamma=vp.gamma, rays=vp.rays,
                                   points=vp.points, lag=lag, pad=pad,
-                                  n_threads=native.threads(vp.threads))
+                                  n_threads=native.threads(vp.threads), surface=surface)
+    if surface is not None:
+        raise ValueError("the fused surface cost needs the native kernel (native_applies)")
 
     qr = jnp.concatenate([rows + dr for dr, _ in offsets], axis=-1)
     qc = jnp.concatenate([cols + dc for _, dc in offsets], axis=-1)

@@ -10,7 +10,10 @@
   against the JAX form and the plant's float64 model.
 - surface.cc, VA-MPPI's expected surface cost (costs.surface_expectation, closed
   form) for all rollouts, used with the native visibility kernel
-  (`planner.va_kernel`); tests/test_planner.py checks it against the JAX form.
+  (`planner.va_kernel`); tests/test_planner.py checks it against the JAX form. Its
+  per-trajectory code (surface.h) also runs fused into va_counts.cc
+  (`va_surface`), where the variances then never leave a thread's cache; VA-MPPI's
+  iteration takes that form unless it needs the variances (`planner.crash_variance`).
 
 The library (common/native.py builds it) is compiled next to its sources; `make` builds
 it at install, and the first use builds it if it is missing.
@@ -19,6 +22,7 @@ it at install, and the first use builds it if it is missing.
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
@@ -32,9 +36,10 @@ from common.native import Library, NativeUnavailable
 
 LIBRARY = Library(tuple(Path(__file__).with_name(n)
                         for n in ("va_counts.cc", "rollout.cc", "surface.cc")),
-                  tuple(Path(__file__).with_name(n) for n in ("parallel.h", "vecmath.h")))
+                  tuple(Path(__file__).with_name(n)
+                        for n in ("parallel.h", "surface.h", "vecmath.h")))
 TARGETS = {"vamppi_va_counts": "VaCounts", "vamppi_rollout": "Rollout",   # FFI name: symbol
-           "vamppi_surface": "Surface"}
+           "vamppi_surface": "Surface", "vamppi_va_surface": "VaSurface"}
 _WHAT = "the native planner kernels"
 
 
@@ -70,26 +75,54 @@ def threads(requested: int) -> int:
         return max(1, os.cpu_count() or 1)
 
 
+@dataclass(frozen=True)
+class SurfaceSpec:
+    """What `va_variance` needs to return the expected surface cost instead of the
+    variances (the fused kernel): expected_surface's arguments but the variance."""
+    outside: Any                  # (K, T, P) 1 where a footprint point is off the map
+    h0: Any                       # (K,) the ground under the vehicle now
+    grad: float
+    step: float
+    height: float
+    n_across: int
+
+
 def va_variance(mean: Any, variance: Any, origin: Any, states: Any, skip: Any, rows: Any,
                 cols: Any,
                 offsets: tuple[tuple[int, int], ...], grid: np.ndarray, weights: np.ndarray, *,
                 resolution: float, height: float, gamma: float, rays: int, points: int,
-                lag: int, pad: int, n_threads: int) -> Any:
+                lag: int, pad: int, n_threads: int, surface: SurfaceSpec | None = None) -> Any:
     """The variance (K, T, Q * P) each trajectory meets at its query cells: the map's
     variance times exp(-gamma C), C the splatted counts; skip (K, T): how many of each
-    ray's nearest points do not count (they still block); see va_counts.cc."""
+    ray's nearest points do not count (they still block); see va_counts.cc. With
+    `surface` (the five queries of costs.OFFSETS), the expected surface cost (K, T, P)
+    computed from those variances instead, as `expected_surface` would (one pass)."""
     k, t, p = rows.shape
-    out = jax.ShapeDtypeStruct((k, t, weights.shape[1] * p), jnp.float32)
     _register()
-    call = jax.ffi.ffi_call("vamppi_va_counts", out, vmap_method="sequential")
-    return call(jnp.asarray(mean, jnp.float32), jnp.asarray(variance, jnp.float32),
-                jnp.asarray(origin, jnp.float32), jnp.asarray(states, jnp.float32),
-                jnp.asarray(skip, jnp.int32), rows.astype(jnp.int32), cols.astype(jnp.int32),
-                jnp.asarray(offsets, jnp.int32), jnp.asarray(grid, jnp.float32),
-                jnp.asarray(weights, jnp.float32),
-                resolution=np.float32(resolution), height=np.float32(height),
-                gamma=np.float32(gamma), rays=np.int64(rays), points=np.int64(points),
-                lag=np.int64(lag), pad=np.int64(pad), threads=np.int64(n_threads))
+    args = (jnp.asarray(mean, jnp.float32), jnp.asarray(variance, jnp.float32),
+            jnp.asarray(origin, jnp.float32), jnp.asarray(states, jnp.float32),
+            jnp.asarray(skip, jnp.int32), rows.astype(jnp.int32), cols.astype(jnp.int32),
+            jnp.asarray(offsets, jnp.int32), jnp.asarray(grid, jnp.float32),
+            jnp.asarray(weights, jnp.float32))
+    attrs = dict(resolution=np.float32(resolution), height=np.float32(height),
+                 gamma=np.float32(gamma), rays=np.int64(rays), points=np.int64(points),
+                 lag=np.int64(lag), pad=np.int64(pad), threads=np.int64(n_threads))
+    if surface is None:
+        out = jax.ShapeDtypeStruct((k, t, weights.shape[1] * p), jnp.float32)
+        return jax.ffi.ffi_call("vamppi_va_counts", out, vmap_method="sequential")(*args, **attrs)
+    out = jax.ShapeDtypeStruct((k, t, p), jnp.float32)
+    call = jax.ffi.ffi_call("vamppi_va_surface", out, vmap_method="sequential")
+    return call(*args, surface.outside.astype(jnp.int32), jnp.asarray(surface.h0, jnp.float32),
+                **attrs, **_surface_attrs(resolution, surface.grad, surface.step,
+                                          surface.n_across),
+                height_threshold=np.float32(surface.height))
+
+
+def _surface_attrs(resolution: float, grad: float, step: float, n_across: int
+                   ) -> dict[str, Any]:
+    two_res = 2.0 * resolution                        # as costs.indicator_quantities has it
+    return dict(two_res=np.float32(two_res), two_res2=np.float32(two_res ** 2),
+                grad=np.float32(grad), step=np.float32(step), n_across=np.int64(n_across))
 
 
 def expected_surface(mean: Any, rows: Any, cols: Any, outside: Any, variance: Any, h0: Any,
@@ -102,13 +135,11 @@ def expected_surface(mean: Any, rows: Any, cols: Any, outside: Any, variance: An
     out = jax.ShapeDtypeStruct(rows.shape, jnp.float32)
     _register()
     call = jax.ffi.ffi_call("vamppi_surface", out, vmap_method="sequential")
-    two_res = 2.0 * resolution                        # as costs.indicator_quantities has it
     return call(jnp.asarray(mean, jnp.float32), rows.astype(jnp.int32), cols.astype(jnp.int32),
                 outside.astype(jnp.int32), jnp.asarray(variance, jnp.float32),
-                jnp.asarray(h0, jnp.float32),
-                two_res=np.float32(two_res), two_res2=np.float32(two_res ** 2),
-                grad=np.float32(grad), step=np.float32(step), height=np.float32(height),
-                n_across=np.int64(n_across), threads=np.int64(n_threads))
+                jnp.asarray(h0, jnp.float32), height=np.float32(height),
+                threads=np.int64(n_threads),
+                **_surface_attrs(resolution, grad, step, n_across))
 
 
 # rollout.cc's `Model`, in its order: the vehicle's fields, then the control limits
