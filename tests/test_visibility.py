@@ -152,7 +152,9 @@ def test_decayed_variance_matches_the_dense_float64_reference(rng, lag, decel):
 
 
 @pytest.mark.skipif(not native.available(), reason="the native kernel does not build here")
-@pytest.mark.parametrize(("lag", "decel", "splat"), [(*c, 9) for c in CAUSALITY] + [(1, 0.0, 7)])
+# splat 17: patches of 19 cells, 3 or 4 blocks of relevance a side (the other marking path)
+@pytest.mark.parametrize(("lag", "decel", "splat"),
+                         [(*c, 9) for c in CAUSALITY] + [(1, 0.0, 7), (1, 0.0, 17)])
 def test_native_kernel_matches_the_dense_float64_reference(rng, lag, decel, splat):
     """The C++ kernel (services/planner/native): its cells are not exposed, so the reference
     is built wholly in float64 (cells, visibility, counts, splat, decay); queries within the

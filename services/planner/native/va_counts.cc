@@ -10,8 +10,9 @@
 // query cell times exp(-gamma C). Each ray is marched from its nearest point and
 // stops at its first blocker, which is itself seen; a pose's `skip` nearest points
 // of every ray block it but do not count (`planner.visibility_stop_decel_mps2`).
-// The visited cells are set back to zero after each trajectory, so one map per
-// thread serves every trajectory.
+// After each trajectory the bounding box of its relevant blocks (below), where all its counts
+// lie, is set back to zero, so one map per thread serves every trajectory. The mean is read
+// from a padded copy laid out like the count map, so one index serves both.
 //
 // What no read can feel is not counted (the variances returned are the same): a point whose
 // 8 x 8-cell block lies under no patch of the trajectory; and a ray is walked only up to its
@@ -42,6 +43,7 @@
 // (half the memory; at K = 4000 8 % faster than the two calls, at K = 800 the same).
 
 #include <algorithm>
+#include <climits>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
@@ -104,6 +106,7 @@ inline v16f sums16(const v16f* v) {
 
 struct Problem {
   const float* mean;
+  const float* mean_padded;   // (H + 2 pad, W + 2 pad): the mean at the count map's indices
   const float* variance;
   int64_t h, w;
   float ox, oy, res, height;
@@ -188,24 +191,23 @@ constexpr int kBlockShift = 3, kBlock = 1 << kBlockShift;
 // A thread's scratch for add_visible: every ray's points (rays x stride) and last point.
 struct Walks {
   explicit Walks(int64_t rays, int64_t stride)
-      : store(static_cast<size_t>(4 * rays * stride + rays)),
-        inside(store.data()), cell(inside + rays * stride), at(cell + rays * stride),
-        counts(at + rays * stride), last(counts + rays * stride) {}
+      : store(static_cast<size_t>(2 * rays * stride + rays)),
+        at(store.data()), counts(at + rays * stride), last(counts + rays * stride) {}
   std::vector<int32_t> store;
-  int32_t *inside, *cell, *at, *counts, *last;
+  int32_t *at, *counts, *last;
 };
 
 // Adds pose `s`'s visible ray points that lie in relevant blocks to the raw count map (padded)
-// and appends their cells to `cells` from `n_cells` on (for the clean-up). Every ray's cells
+// (they all lie in relevant blocks, which the clean-up clears). Every ray's cells
 // are computed first (vector code, one ray after another: their relevance gathers overlap,
 // where a walk's unpredictable branches between them would stall each), then each ray is
 // walked to its first blocker or its last point that could count, whichever comes first.
 __attribute__((target("prefer-vector-width=512")))
 void add_visible(const Problem& p, const float* s, int32_t skip, const int32_t* relevant,
-                 int64_t wb, Walks& ws, uint16_t* map, int32_t* cells, int64_t& n_cells) {
+                 int64_t wb, Walks& ws, uint16_t* map) {
   const float x = s[kX], y = s[kY];
   const float c = std::cos(s[kPsi]), sn = std::sin(s[kPsi]);
-  const int32_t wp = static_cast<int32_t>(p.w + 2 * p.pad), w = static_cast<int32_t>(p.w);
+  const int32_t wp = static_cast<int32_t>(p.w + 2 * p.pad);
   const int32_t pad = static_cast<int32_t>(p.pad), bw = static_cast<int32_t>(wb);
   int64_t vr = static_cast<int64_t>(std::floor((y - p.oy) / p.res));
   int64_t vc = static_cast<int64_t>(std::floor((x - p.ox) / p.res));
@@ -215,7 +217,6 @@ void add_visible(const Problem& p, const float* s, int32_t skip, const int32_t* 
   const float fh = static_cast<float>(p.h), fw = static_cast<float>(p.w);
   const float inv = 1.0f / p.res;
   const int n = static_cast<int>(p.points);
-  int64_t nc = n_cells;
   const int stride = static_cast<int>(p.stride);
   for (int64_t r = 0; r < p.rays; ++r) {
     // the ray's points are collinear (VisibilityParams.ray_grid): its first point, and the
@@ -227,45 +228,37 @@ void add_visible(const Problem& p, const float* s, int32_t skip, const int32_t* 
     const float r0 = (y + sn * base[0] + c * base[1] - p.oy) * inv;
     const float dc = (c * dir[0] - sn * dir[1]) * inv;
     const float dr = (sn * dir[0] + c * dir[1]) * inv;
-    int32_t* __restrict inside = ws.inside + r * stride;
-    int32_t* __restrict cell = ws.cell + r * stride;
     int32_t* __restrict at = ws.at + r * stride;
     int32_t* __restrict counts = ws.counts + r * stride;
     // the walk can stop at the last point that could count (in a relevant block, not
-    // skipped): what lies beyond it changes nothing read, and a ray with none is not walked
-    int last = -1;
+    // skipped): what lies beyond it changes nothing read, and a ray with none is not walked;
+    // nor beyond its first point off the map, which blocks it and is not seen
+    int last = -1, first_out = stride;
     // (16 lanes asked for: GCC's own choice here is 8, about 12 % slower)
-#pragma omp simd simdlen(16) reduction(max : last)
+#pragma omp simd simdlen(16) reduction(max : last) reduction(min : first_out)
     for (int k = 0; k < stride; ++k) {   // visibility.ray_cells' cells, in float32
       const float fc = std::floor(c0 + along[k] * dc);
       const float fr = std::floor(r0 + along[k] * dr);
-      inside[k] = fr >= 0.0f && fr < fh && fc >= 0.0f && fc < fw;
+      const bool inside = fr >= 0.0f && fr < fh && fc >= 0.0f && fc < fw;
+      first_out = std::min(first_out, inside ? stride : k);
       const int32_t row = static_cast<int32_t>(std::min(std::max(fr, 0.0f), fh - 1.0f));
       const int32_t col = static_cast<int32_t>(std::min(std::max(fc, 0.0f), fw - 1.0f));
-      cell[k] = row * w + col;
       at[k] = (row + pad) * wp + col + pad;
       const int32_t counts_here =
           relevant[(row >> kBlockShift) * bw + (col >> kBlockShift)] & (k >= skip) & (k < n);
       counts[k] = counts_here;
       last = std::max(last, counts_here ? k : -1);
     }
-    ws.last[r] = last;
+    ws.last[r] = std::min(last, first_out - 1);
   }
   for (int64_t r = 0; r < p.rays; ++r) {
-    const int32_t* inside = ws.inside + r * stride;
-    const int32_t* cell = ws.cell + r * stride;
     const int32_t* at = ws.at + r * stride;
     const int32_t* counts = ws.counts + r * stride;
     for (int k = 0; k <= ws.last[r]; ++k) {
-      if (!inside[k]) break;              // off the map: blocks the ray and is not seen
-      if (counts[k]) {                    // nearer points block but do not count
-        ++map[at[k]];
-        cells[nc++] = at[k];
-      }
-      if (p.mean[cell[k]] > threshold) break;  // the first blocker is seen
+      map[at[k]] += counts[k];            // nearer points block but do not count
+      if (p.mean_padded[at[k]] > threshold) break;   // the first blocker is seen
     }
   }
-  n_cells = nc;
 }
 
 // `vamppi_va_surface`: the expected surface cost computed from each trajectory's variances
@@ -277,6 +270,49 @@ struct Fused {
   float* out;               // (K, T, P) expected tripped indicators
 };
 
+// Marks the blocks under the patches around `n` footprint cells. A patch of the paper's
+// sizes spans 2 or 3 blocks a side (11 cells from any offset in a block of 8): three rows
+// and columns of blocks from the first, the third clamped to the last, written whether or
+// not they repeat (no branches: writing a block twice changes nothing; 1.6 ms less at
+// K = 800 than a loop over the blocks, which larger patches still take).
+// Returns the bounding box of the blocks marked (first and last block row, column).
+struct BlockBox {
+  int32_t r0, r1, c0, c1;
+};
+
+BlockBox mark_relevant(const Problem& p, const int32_t* rows, const int32_t* cols, int64_t n,
+                       int64_t wb, int32_t* relevant) {
+  BlockBox box{INT32_MAX, -1, INT32_MAX, -1};
+  const int32_t reach = static_cast<int32_t>(p.reach), pad = static_cast<int32_t>(p.pad);
+  const int32_t h = static_cast<int32_t>(p.h), w = static_cast<int32_t>(p.w);
+  const int32_t bw = static_cast<int32_t>(wb);
+  for (int64_t q = 0; q < n; ++q) {
+    const int32_t r0 = std::clamp(rows[q], reach, h - 1 - reach);
+    const int32_t c0 = std::clamp(cols[q], reach, w - 1 - reach);
+    const int32_t b_r0 = std::max(r0 - pad, 0) >> kBlockShift;
+    const int32_t b_r1 = std::min(r0 + pad, h - 1) >> kBlockShift;
+    const int32_t b_c0 = std::max(c0 - pad, 0) >> kBlockShift;
+    const int32_t b_c1 = std::min(c0 + pad, w - 1) >> kBlockShift;
+    box = {std::min(box.r0, b_r0), std::max(box.r1, b_r1), std::min(box.c0, b_c0),
+           std::max(box.c1, b_c1)};
+    if (b_r1 - b_r0 > 2 || b_c1 - b_c0 > 2) {
+      for (int32_t r = b_r0; r <= b_r1; ++r) {
+        for (int32_t c = b_c0; c <= b_c1; ++c) relevant[r * bw + c] = 1;
+      }
+      continue;
+    }
+    const int32_t br[3] = {b_r0, std::min(b_r0 + 1, b_r1), b_r1};
+    const int32_t bc[3] = {b_c0, std::min(b_c0 + 1, b_c1), b_c1};
+    for (int a = 0; a < 3; ++a) {
+      int32_t* row = relevant + br[a] * bw;
+      row[bc[0]] = 1;
+      row[bc[1]] = 1;
+      row[bc[2]] = 1;
+    }
+  }
+  return box;
+}
+
 void trajectories(const Problem& p, vamppi::Ranges& ranges, const Fused* fused) {
   const int64_t wp = p.w + 2 * p.pad;
   const int64_t width = p.queries * p.n_pts;
@@ -284,8 +320,6 @@ void trajectories(const Problem& p, vamppi::Ranges& ranges, const Fused* fused) 
   // raw counts as uint16 (at most rays * points * T per cell, checked on the Python side):
   // half the cache footprint of floats; a patch row's last segment may read past the map
   std::vector<uint16_t> map(static_cast<size_t>((p.h + 2 * p.pad) * wp + row_len), 0);
-  std::vector<int32_t> cells(static_cast<size_t>(p.t_len * p.rays * p.points));
-  int64_t n_cells = 0;
   Walks walks(p.rays, p.stride);
   std::vector<float> prior(static_cast<size_t>(width));
   const int64_t n_vec = p.size * segments;                  // 16-lane vectors in a patch
@@ -309,21 +343,9 @@ void trajectories(const Problem& p, vamppi::Ranges& ranges, const Fused* fused) 
       const int32_t* rows = p.rows + k * p.t_len * p.n_pts;
       const int32_t* cols = p.cols + k * p.t_len * p.n_pts;
       float* out = fused ? met.data() : p.out + k * p.t_len * width;
-      n_cells = 0;
       std::fill(relevant.begin(), relevant.end(), 0);
-      for (int64_t i = p.lag; i < p.t_len; ++i) {    // the blocks under step i's patches
-        for (int64_t q = 0; q < p.n_pts; ++q) {
-          const int64_t r0 = std::clamp<int64_t>(rows[i * p.n_pts + q], p.reach, p.h - 1 - p.reach);
-          const int64_t c0 = std::clamp<int64_t>(cols[i * p.n_pts + q], p.reach, p.w - 1 - p.reach);
-          const int64_t b_r0 = std::max<int64_t>(r0 - p.pad, 0) >> kBlockShift;
-          const int64_t b_r1 = std::min<int64_t>(r0 + p.pad, p.h - 1) >> kBlockShift;
-          const int64_t b_c0 = std::max<int64_t>(c0 - p.pad, 0) >> kBlockShift;
-          const int64_t b_c1 = std::min<int64_t>(c0 + p.pad, p.w - 1) >> kBlockShift;
-          for (int64_t br = b_r0; br <= b_r1; ++br) {
-            for (int64_t bc = b_c0; bc <= b_c1; ++bc) relevant[br * wb + bc] = 1;
-          }
-        }
-      }
+      const BlockBox box = mark_relevant(p, rows + p.lag * p.n_pts, cols + p.lag * p.n_pts,
+                                         (p.t_len - p.lag) * p.n_pts, wb, relevant.data());
       for (int64_t i = 0; i < p.t_len; ++i) {
         const int32_t* ri = rows + i * p.n_pts;
         const int32_t* ci = cols + i * p.n_pts;
@@ -342,7 +364,7 @@ void trajectories(const Problem& p, vamppi::Ranges& ranges, const Fused* fused) 
         }
         // poses 0 .. i - lag
         add_visible(p, st + (i - p.lag) * kStateDim, skip[i - p.lag], relevant.data(), wb,
-                    walks, map.data(), cells.data(), n_cells);
+                    walks, map.data());
         for (int64_t q = 0; q < p.n_pts; ++q) {
           // the patch around the footprint cell starts at the cell itself in padded coordinates
           const int64_t r0 = std::clamp<int64_t>(ri[q], p.reach, p.h - 1 - p.reach);
@@ -374,7 +396,14 @@ void trajectories(const Problem& p, vamppi::Ranges& ranges, const Fused* fused) 
 #pragma omp simd
         for (int64_t j = 0; j < width; ++j) oi[j] = pr[j] * vamppi::exp_nonpositive(g * cn[j]);
       }
-      for (int64_t j = 0; j < n_cells; ++j) map[cells[j]] = 0;
+      // every count lies in a relevant block: clear their bounding box, row by row
+      const int64_t c_lo = int64_t{box.c0} << kBlockShift;
+      const int64_t c_hi = std::min<int64_t>((int64_t{box.c1} + 1) << kBlockShift, p.w);
+      const int64_t r_hi = std::min<int64_t>((int64_t{box.r1} + 1) << kBlockShift, p.h);
+      for (int64_t r = int64_t{box.r0} << kBlockShift; r < r_hi && c_lo < c_hi; ++r) {
+        std::memset(map.data() + (r + p.pad) * wp + c_lo + p.pad, 0,
+                    (c_hi - c_lo) * sizeof(uint16_t));
+      }
       if (fused) {
         const int64_t n = p.t_len * p.n_pts;
         surface::trajectory(fused->sp, *scratch, rows, cols, fused->outside + k * n, out,
@@ -386,7 +415,7 @@ void trajectories(const Problem& p, vamppi::Ranges& ranges, const Fused* fused) 
 
 // The problem both handlers solve, with the tables it points into.
 struct Prepared {
-  std::vector<float> base, dir, along, wt, us, vs;
+  std::vector<float> base, dir, along, wt, us, vs, mean_padded;
   std::vector<int32_t> which;
   Problem p;
 };
@@ -463,13 +492,14 @@ ffi::Error prepare(ffi::Buffer<ffi::F32>& mean, ffi::Buffer<ffi::F32>& variance,
   }
   // each query's weights as an outer product u v (u from the column, v from the row of its
   // largest weight), kept if that reproduces every weight to 1e-6 of the largest; equal u
-  // stored once
+  // stored once. Only for patch rows of one vector (v has 16 lanes; wider patches, splats
+  // over 13, take the general path)
   std::vector<float>&us = pr.us, &vs = pr.vs;
   std::vector<int32_t>& which = pr.which;
   us.clear();
   vs.assign(queries * kLanes, 0.0f);
   which.assign(queries, 0);
-  bool separable = true;
+  bool separable = size <= kLanes;
   for (int64_t q = 0; q < queries && separable; ++q) {
     const float* wq = wt.data() + q * size * row_len;
     int64_t a0 = 0, b0 = 0;
@@ -497,7 +527,13 @@ ffi::Error prepare(ffi::Buffer<ffi::F32>& mean, ffi::Buffer<ffi::F32>& variance,
     which[q] = static_cast<int32_t>(j);
   }
   const int64_t n_u = separable ? static_cast<int64_t>(us.size()) / size : 0;
-  pr.p = Problem{mean.typed_data(), variance.typed_data(), md[0], md[1], o[0], o[1],
+  const int64_t wp = md[1] + 2 * pad;
+  pr.mean_padded.assign((md[0] + 2 * pad) * wp, 0.0f);
+  for (int64_t r = 0; r < md[0]; ++r) {
+    std::memcpy(pr.mean_padded.data() + (r + pad) * wp + pad, mean.typed_data() + r * md[1],
+                md[1] * sizeof(float));
+  }
+  pr.p = Problem{mean.typed_data(), pr.mean_padded.data(), variance.typed_data(), md[0], md[1], o[0], o[1],
                  resolution, height, states.typed_data(), skip.typed_data(), sd[1],
                  rows.typed_data(), cols.typed_data(), rd[2], offsets.typed_data(), reach,
                  base.data(), dir.data(), along.data(), rays, points, stride, wt.data(), size,
