@@ -270,44 +270,39 @@ struct Fused {
   float* out;               // (K, T, P) expected tripped indicators
 };
 
-// Marks the blocks under the patches around `n` footprint cells. A patch of the paper's
-// sizes spans 2 or 3 blocks a side (11 cells from any offset in a block of 8): three rows
-// and columns of blocks from the first, the third clamped to the last, written whether or
-// not they repeat (no branches: writing a block twice changes nothing; 1.6 ms less at
-// K = 800 than a loop over the blocks, which larger patches still take).
-// Returns the bounding box of the blocks marked (first and last block row, column).
+// A box of blocks: first and last block row, column.
 struct BlockBox {
   int32_t r0, r1, c0, c1;
 };
 
+// Marks the blocks under the patches around `n` footprint cells, step by step (`n_pts` a
+// step): the blocks of the box around the step's patches, a superset of their own (a few
+// more points counted that no read feels), written without a test per point: 1.2-2.3 %
+// less time for the whole kernel at K = 800 than marking each patch's blocks. Returns the
+// box around all the blocks marked.
 BlockBox mark_relevant(const Problem& p, const int32_t* rows, const int32_t* cols, int64_t n,
                        int64_t wb, int32_t* relevant) {
   BlockBox box{INT32_MAX, -1, INT32_MAX, -1};
   const int32_t reach = static_cast<int32_t>(p.reach), pad = static_cast<int32_t>(p.pad);
   const int32_t h = static_cast<int32_t>(p.h), w = static_cast<int32_t>(p.w);
   const int32_t bw = static_cast<int32_t>(wb);
-  for (int64_t q = 0; q < n; ++q) {
-    const int32_t r0 = std::clamp(rows[q], reach, h - 1 - reach);
-    const int32_t c0 = std::clamp(cols[q], reach, w - 1 - reach);
-    const int32_t b_r0 = std::max(r0 - pad, 0) >> kBlockShift;
-    const int32_t b_r1 = std::min(r0 + pad, h - 1) >> kBlockShift;
-    const int32_t b_c0 = std::max(c0 - pad, 0) >> kBlockShift;
-    const int32_t b_c1 = std::min(c0 + pad, w - 1) >> kBlockShift;
+  const int64_t np = p.n_pts;
+  for (int64_t i = 0; i < n; i += np) {
+    int32_t rlo = INT32_MAX, rhi = INT32_MIN, clo = INT32_MAX, chi = INT32_MIN;
+    for (int64_t q = i; q < i + np; ++q) {
+      const int32_t r0 = std::clamp(rows[q], reach, h - 1 - reach);
+      const int32_t c0 = std::clamp(cols[q], reach, w - 1 - reach);
+      rlo = std::min(rlo, r0); rhi = std::max(rhi, r0);
+      clo = std::min(clo, c0); chi = std::max(chi, c0);
+    }
+    const int32_t b_r0 = std::max(rlo - pad, 0) >> kBlockShift;
+    const int32_t b_r1 = std::min(rhi + pad, h - 1) >> kBlockShift;
+    const int32_t b_c0 = std::max(clo - pad, 0) >> kBlockShift;
+    const int32_t b_c1 = std::min(chi + pad, w - 1) >> kBlockShift;
     box = {std::min(box.r0, b_r0), std::max(box.r1, b_r1), std::min(box.c0, b_c0),
            std::max(box.c1, b_c1)};
-    if (b_r1 - b_r0 > 2 || b_c1 - b_c0 > 2) {
-      for (int32_t r = b_r0; r <= b_r1; ++r) {
-        for (int32_t c = b_c0; c <= b_c1; ++c) relevant[r * bw + c] = 1;
-      }
-      continue;
-    }
-    const int32_t br[3] = {b_r0, std::min(b_r0 + 1, b_r1), b_r1};
-    const int32_t bc[3] = {b_c0, std::min(b_c0 + 1, b_c1), b_c1};
-    for (int a = 0; a < 3; ++a) {
-      int32_t* row = relevant + br[a] * bw;
-      row[bc[0]] = 1;
-      row[bc[1]] = 1;
-      row[bc[2]] = 1;
+    for (int32_t r = b_r0; r <= b_r1; ++r) {
+      for (int32_t c = b_c0; c <= b_c1; ++c) relevant[r * bw + c] = 1;
     }
   }
   return box;
