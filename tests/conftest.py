@@ -1,4 +1,5 @@
-"""Shared fixtures: fresh random seeds (printed on failure) and a Zenoh router on loopback."""
+"""Shared fixtures: fresh random seeds (printed on failure), a VA-MPPI planning problem and a
+Zenoh router on loopback."""
 
 from __future__ import annotations
 
@@ -38,6 +39,28 @@ def rng(request) -> np.random.Generator:
     request.node.user_properties.append(("seed", seed))
     print(f"rng seed {seed}")
     return np.random.default_rng(seed)
+
+
+@pytest.fixture
+def va_planning_problem():
+    """VA-MPPI's benchmark problem (the offroad map of `deploy.bench.planner_inputs`) with
+    K = 64 rollouts of sampled noise round a zero nominal: (params, map view, states
+    (64, N+1, 6))."""
+    import jax
+    import jax.numpy as jnp
+
+    from common.config import load_config
+    from deploy.bench import planner_inputs
+    from services.planner import mppi
+    from services.planner.costs import MapView
+    cfg = load_config(overrides=['planner.controller="va"', "planner.samples=64"])
+    x0, u0, _goal, mean, var, origin, res = planner_inputs(cfg)
+    params = mppi.PlannerParams.from_config(cfg)
+    m = MapView(jnp.asarray(mean), jnp.asarray(var), jnp.asarray(origin), res)
+    noise = mppi.sample_noise(params, jax.random.PRNGKey(3))
+    states = jax.jit(jax.vmap(lambda e: mppi.rollout(params, jnp.asarray(x0), jnp.asarray(u0),
+                                                     e)[0]))(noise)
+    return params, m, states
 
 
 @pytest.fixture

@@ -277,19 +277,13 @@ def test_native_expected_surface_matches_the_closed_form(rng):
 
 
 @pytest.mark.skipif(not native.available(), reason="the native kernels do not build here")
-def test_fused_surface_kernel_equals_the_update_then_the_surface(monkeypatch):
+def test_fused_surface_kernel_equals_the_update_then_the_surface(monkeypatch,
+                                                                 va_planning_problem):
     """VA-MPPI's iteration takes the expected surface cost from the variance update fused
     with surface.h (va_counts.cc, `vamppi_va_surface`); on a planning problem (K = 64
     rollouts on the offroad map) it is bit for bit the two kernels one after the other
     (va_counts.cc, then surface.cc), with one thread or three."""
-    from deploy.bench import planner_inputs
-    cfg = load_config(overrides=['planner.controller="va"', "planner.samples=64"])
-    x0, u0, _goal, mean, var, origin, res = planner_inputs(cfg)
-    params = mppi.PlannerParams.from_config(cfg)
-    m = MapView(jnp.asarray(mean), jnp.asarray(var), jnp.asarray(origin), res)
-    noise = mppi.sample_noise(params, jax.random.PRNGKey(3))
-    states = jax.jit(jax.vmap(lambda e: mppi.rollout(params, jnp.asarray(x0), jnp.asarray(u0),
-                                                     e)[0]))(noise)
+    params, m, states = va_planning_problem
 
     def terms(p):
         return jax.jit(lambda s: mppi.surface_terms(p, m, s))(states)

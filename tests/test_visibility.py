@@ -247,28 +247,19 @@ def test_batched_update_equals_one_trajectory_at_a_time(rng, backend):
 
 
 @pytest.mark.skipif(not native.available(), reason="the native kernel does not build here")
-def test_native_and_jax_forms_agree_on_a_planning_problem():
+def test_native_and_jax_forms_agree_on_a_planning_problem(va_planning_problem):
     """Both forms on one VA-MPPI problem (K = 64 rollouts on the offroad map): equal except
     where a ray point sits within float32 rounding of a cell boundary (their sines and
     cosines may differ in the last bit), which leaves only a few of the 200 k queries."""
-    from common.config import load_config as load
-    from deploy.bench import planner_inputs
     from services.planner import mppi
-    from services.planner.costs import MapView
-    cfg = load(overrides=['planner.controller="va"', "planner.samples=64"])
-    x0, u0, _goal, mean, var, origin, res = planner_inputs(cfg)
-    params = mppi.PlannerParams.from_config(cfg)
-    m = MapView(jnp.asarray(mean), jnp.asarray(var), jnp.asarray(origin), res)
-    noise = mppi.sample_noise(params, jax.random.PRNGKey(3))
-    states = jax.jit(jax.vmap(lambda e: mppi.rollout(params, jnp.asarray(x0), jnp.asarray(u0),
-                                                     e)[0]))(noise)
+    params, m, states = va_planning_problem
     out = {}
     for backend in ("jax", "native"):
         p = dataclasses.replace(params, visibility=dataclasses.replace(params.visibility,
                                                                        backend=backend))
         out[backend] = np.asarray(jax.jit(lambda s, p=p: mppi.query_variance(p, m, s))(states))
     a, b = out["jax"], out["native"]
-    assert (a < 0.5 * np.asarray(var).max()).mean() > 0.3      # much was seen
+    assert (a < 0.5 * np.asarray(m.variance).max()).mean() > 0.3      # much was seen
     close = np.isclose(a, b, rtol=1e-4, atol=1e-7)
     assert close.mean() > 0.999, close.mean()
 
