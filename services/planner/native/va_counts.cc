@@ -591,53 +591,45 @@ ffi::Error VaSurfaceImpl(ffi::Buffer<ffi::F32> mean, ffi::Buffer<ffi::F32> varia
   return ffi::Error::Success();
 }
 
+// The inputs and attributes both handlers share (prepare's); each adds its own.
+template <class Binding>
+auto with_update_attrs(Binding&& b) {
+  return std::move(b)
+      .template Attr<float>("resolution")
+      .template Attr<float>("height")
+      .template Attr<float>("gamma")
+      .template Attr<int64_t>("rays")
+      .template Attr<int64_t>("points")
+      .template Attr<int64_t>("lag")
+      .template Attr<int64_t>("pad")
+      .template Attr<int64_t>("threads");
+}
+
+auto update_args() {
+  return ffi::Ffi::Bind()
+      .Arg<ffi::Buffer<ffi::F32>>()   // mean
+      .Arg<ffi::Buffer<ffi::F32>>()   // variance
+      .Arg<ffi::Buffer<ffi::F32>>()   // origin
+      .Arg<ffi::Buffer<ffi::F32>>()   // states
+      .Arg<ffi::Buffer<ffi::S32>>()   // skip
+      .Arg<ffi::Buffer<ffi::S32>>()   // rows
+      .Arg<ffi::Buffer<ffi::S32>>()   // cols
+      .Arg<ffi::Buffer<ffi::S32>>()   // offsets
+      .Arg<ffi::Buffer<ffi::F32>>()   // grid
+      .Arg<ffi::Buffer<ffi::F32>>();  // weights
+}
+
 }  // namespace
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(VaCounts, VaCountsImpl,
-                              ffi::Ffi::Bind()
-                                  .Arg<ffi::Buffer<ffi::F32>>()   // mean
-                                  .Arg<ffi::Buffer<ffi::F32>>()   // variance
-                                  .Arg<ffi::Buffer<ffi::F32>>()   // origin
-                                  .Arg<ffi::Buffer<ffi::F32>>()   // states
-                                  .Arg<ffi::Buffer<ffi::S32>>()   // skip
-                                  .Arg<ffi::Buffer<ffi::S32>>()   // rows
-                                  .Arg<ffi::Buffer<ffi::S32>>()   // cols
-                                  .Arg<ffi::Buffer<ffi::S32>>()   // offsets
-                                  .Arg<ffi::Buffer<ffi::F32>>()   // grid
-                                  .Arg<ffi::Buffer<ffi::F32>>()   // weights
-                                  .Ret<ffi::Buffer<ffi::F32>>()   // variance met
-                                  .Attr<float>("resolution")
-                                  .Attr<float>("height")
-                                  .Attr<float>("gamma")
-                                  .Attr<int64_t>("rays")
-                                  .Attr<int64_t>("points")
-                                  .Attr<int64_t>("lag")
-                                  .Attr<int64_t>("pad")
-                                  .Attr<int64_t>("threads"));
+                              with_update_attrs(update_args()
+                                  .Ret<ffi::Buffer<ffi::F32>>()));   // variance met
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(VaSurface, VaSurfaceImpl,
-                              ffi::Ffi::Bind()
-                                  .Arg<ffi::Buffer<ffi::F32>>()   // mean
-                                  .Arg<ffi::Buffer<ffi::F32>>()   // variance
-                                  .Arg<ffi::Buffer<ffi::F32>>()   // origin
-                                  .Arg<ffi::Buffer<ffi::F32>>()   // states
-                                  .Arg<ffi::Buffer<ffi::S32>>()   // skip
-                                  .Arg<ffi::Buffer<ffi::S32>>()   // rows
-                                  .Arg<ffi::Buffer<ffi::S32>>()   // cols
-                                  .Arg<ffi::Buffer<ffi::S32>>()   // offsets
-                                  .Arg<ffi::Buffer<ffi::F32>>()   // grid
-                                  .Arg<ffi::Buffer<ffi::F32>>()   // weights
+                              with_update_attrs(update_args()
                                   .Arg<ffi::Buffer<ffi::S32>>()   // outside
                                   .Arg<ffi::Buffer<ffi::F32>>()   // h0
-                                  .Ret<ffi::Buffer<ffi::F32>>()   // expected indicators
-                                  .Attr<float>("resolution")
-                                  .Attr<float>("height")
-                                  .Attr<float>("gamma")
-                                  .Attr<int64_t>("rays")
-                                  .Attr<int64_t>("points")
-                                  .Attr<int64_t>("lag")
-                                  .Attr<int64_t>("pad")
-                                  .Attr<int64_t>("threads")
+                                  .Ret<ffi::Buffer<ffi::F32>>())  // expected indicators
                                   .Attr<float>("two_res")
                                   .Attr<float>("two_res2")
                                   .Attr<float>("grad")
