@@ -133,8 +133,9 @@ def plot_trajectories(cfg: Config, runs: list[dict[str, Any]], scenario: str, ou
                               vmax=vmax)
             if r["outcome"] == "collision":
                 ax.plot(p[-1, 1], p[-1, 2], "rx", ms=6)
-        n = sum(r["scenario"] == scenario and r["controller"] == c for r in runs)
-        ax.set_title(f"{scenario}: {c} ({n} runs, x = collision)")
+        mine = [r for r in runs if r["scenario"] == scenario and r["controller"] == c]
+        hits = sum(r["outcome"] == "collision" for r in mine)
+        ax.set_title(f"{scenario}, {c}: {len(mine)} runs, {hits} collisions (x)", fontsize=10)
         ax.set_xlabel("x, m")
         ax.set_ylabel("y, m")
     if line is not None:
