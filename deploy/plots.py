@@ -125,15 +125,13 @@ def plot_trajectories(cfg: Config, runs: list[dict[str, Any]], scenario: str, ou
     line = None
     for ax, c in zip(axes[0], controllers, strict=True):
         _scenario_background(ax, cfg, scenario)
-        for r in runs:
-            if r["scenario"] != scenario or r["controller"] != c:
-                continue
+        mine = [r for r in runs if r["scenario"] == scenario and r["controller"] == c]
+        for r in mine:
             p = np.asarray(r["path"])
             line = ax.scatter(p[:, 1], p[:, 2], c=p[:, 3], s=2, cmap="viridis", vmin=0,
                               vmax=vmax)
             if r["outcome"] == "collision":
                 ax.plot(p[-1, 1], p[-1, 2], "rx", ms=6)
-        mine = [r for r in runs if r["scenario"] == scenario and r["controller"] == c]
         hits = sum(r["outcome"] == "collision" for r in mine)
         ax.set_title(f"{scenario}, {c}: {len(mine)} runs, {hits} collisions (x)", fontsize=10)
         ax.set_xlabel("x, m")
