@@ -35,6 +35,24 @@ class Obstacle:
         c, s = math.cos(self.yaw), math.sin(self.yaw)
         return (x - self.x) * c + (y - self.y) * s, -(x - self.x) * s + (y - self.y) * c
 
+    def contains(self, x: Any, y: Any) -> Any:
+        """Whether world points lie on the obstacle's footprint (its cells are those whose
+        centres do); arrays ok."""
+        if self.kind == "cylinder":
+            return (x - self.x) ** 2 + (y - self.y) ** 2 <= self.radius ** 2
+        if self.kind == "box":
+            u, v = self.local(x, y)
+            return (np.abs(u) <= self.half_x) & (np.abs(v) <= self.half_y)
+        raise ValueError(f"unknown obstacle kind {self.kind!r}")
+
+    def distance(self, x: Any, y: Any) -> Any:
+        """Distance from world points to the obstacle's footprint, 0 inside; arrays ok."""
+        if self.kind == "cylinder":
+            return np.maximum(0.0, np.hypot(x - self.x, y - self.y) - self.radius)
+        u, v = self.local(x, y)
+        return np.hypot(np.maximum(0.0, np.abs(u) - self.half_x),
+                        np.maximum(0.0, np.abs(v) - self.half_y))
+
 
 @dataclass(frozen=True)
 class Pose2:
@@ -60,6 +78,25 @@ class Scenario:
         """Cells whose ground truth stands `min_height` or more above the bare terrain."""
         return (self.heightmap - self.terrain) >= min_height
 
+    def cell_centres(self, rows: Any, cols: Any) -> tuple[Any, Any]:
+        """World (x, y) of the centres of cells (row, col)."""
+        return (self.origin[0] + (np.asarray(cols) + 0.5) * self.resolution,
+                self.origin[1] + (np.asarray(rows) + 0.5) * self.resolution)
+
+    def obstacle_cells(self, min_height: float) -> tuple[np.ndarray, ...]:
+        """For each obstacle, the flat indices of its cells that stand `min_height` or more
+        above the bare terrain (an obstacle's cell another one overlaps counts for both)."""
+        mask = self.obstacle_mask(min_height)
+        rows, cols = np.nonzero(mask)
+        x, y = self.cell_centres(rows, cols)
+        flat = rows * mask.shape[1] + cols
+        return tuple(flat[ob.contains(x, y)] for ob in self.obstacles)
+
+    def obstacles_at(self, rows: Any, cols: Any) -> tuple[int, ...]:
+        """Indices of the obstacles on which any of the cells (row, col) lies."""
+        x, y = self.cell_centres(rows, cols)
+        return tuple(i for i, ob in enumerate(self.obstacles) if np.any(ob.contains(x, y)))
+
 
 def _terrain(rng: np.random.Generator, n: int, res: float, amplitude: float) -> np.ndarray:
     c = (np.arange(n) + 0.5) * res
@@ -80,14 +117,7 @@ def _render(terrain: np.ndarray, res: float, obstacles: tuple[Obstacle, ...]) ->
     xx, yy = np.meshgrid(c, c, indexing="xy")
     extra = np.zeros_like(terrain)
     for ob in obstacles:
-        if ob.kind == "cylinder":
-            inside = (xx - ob.x) ** 2 + (yy - ob.y) ** 2 <= ob.radius ** 2
-        elif ob.kind == "box":
-            u, v = ob.local(xx, yy)
-            inside = (np.abs(u) <= ob.half_x) & (np.abs(v) <= ob.half_y)
-        else:
-            raise ValueError(f"unknown obstacle kind {ob.kind!r}")
-        extra = np.where(inside, np.maximum(extra, ob.height), extra)
+        extra = np.where(ob.contains(xx, yy), np.maximum(extra, ob.height), extra)
     return (terrain + extra).astype(np.float32)
 
 

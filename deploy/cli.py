@@ -9,6 +9,7 @@
         --samples 400,1000,4000 --runs 100 --seed 0 --out DIR
     vamppi config ...        print the effective configuration as JSON
     vamppi reveal DIR        when each hidden obstacle was first seen, and could it stop
+    vamppi collisions DIR    what each collision was on, and how long the map had shown it
 
 Every command takes `--config FILE` and `--set section.key=value` (repeatable).
 """
@@ -316,6 +317,34 @@ def cmd_reveal(args: argparse.Namespace, cfg: Config) -> int:
     return 0
 
 
+def cmd_collisions(args: argparse.Namespace, cfg: Config) -> int:
+    """What each collision of an experiment was on (deploy/collisions.py)."""
+    from deploy.collisions import attribute, counts, load_saved, save, table
+    from deploy.experiment import read_runs
+    path = Path(args.runs)
+    if path.is_dir():
+        path = path / "runs.jsonl"
+    if not path.exists():
+        raise FileNotFoundError(f"no such file: {path}")
+    saved = path.parent / "config.toml"            # the experiment's own configuration
+    if args.config is None and saved.exists():
+        cfg = load_config(saved, overrides_from_args(args))
+    runs = [r for r in read_runs(path)
+            if args.only is None or r["controller"] in args.only.split(",")]
+    try:
+        earlier = load_saved(path.parent)          # the attributions of earlier reruns
+    except ValueError as exc:
+        print(f"vamppi collisions: {exc}", file=sys.stderr)
+        return 2
+    rows = attribute(cfg, runs, rerun=args.rerun, progress=args.rerun and sys.stderr.isatty(),
+                     saved=earlier)
+    if args.rerun:
+        save(path.parent, earlier, rows)
+    print(json.dumps(rows, indent=1) if args.json else table(rows))
+    print(json.dumps(counts(rows)), file=sys.stderr)
+    return 0
+
+
 def cmd_export_foxglove(args: argparse.Namespace, cfg: Config) -> int:
     from deploy.foxglove import export
     report = export(args.input, args.output, args.map_stride, args.rollouts)
@@ -393,6 +422,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", help="TOML file merged over the defaults")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
     p.set_defaults(func=cmd_reveal)
+
+    p = sub.add_parser("collisions", help="what each collision of an experiment was on, and "
+                                          "how long the map had shown it")
+    p.add_argument("runs", help="an experiment's runs.jsonl (or its directory)")
+    p.add_argument("--controller", dest="only", help="only these controllers (a,b)")
+    p.add_argument("--rerun", action="store_true",
+                   help="run again the collisions recorded without attribution (older records)")
+    p.add_argument("--json", action="store_true", help="JSON rows instead of a table")
+    p.add_argument("--config", help="TOML file merged over the defaults")
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
+    p.set_defaults(func=cmd_collisions)
 
     p = sub.add_parser("service", help="run one service on its own")
     p.add_argument("name", choices=sorted(SERVICE_MAINS))

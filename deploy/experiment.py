@@ -69,6 +69,8 @@ def run_record(cfg: Config, result) -> dict[str, Any]:
     rec.update(path=np.round(path, 3).tolist(), max_speed_mps=round(float(speed.max()), 3),
                solve_ms=[round(x, 2) for x in result.solve_ms],
                scenario_seed=cfg.episode.scenario_seed, config_digest=config_digest(cfg))
+    if result.collision is not None:
+        rec["collision"] = result.collision
     return rec
 
 

@@ -65,10 +65,7 @@ def stopping_distance(cfg: Config, v: float) -> float:
 
 def surface_distance(ob: Obstacle, x: float, y: float) -> float:
     """Distance from (x, y) to the obstacle's footprint (0 inside)."""
-    if ob.kind == "cylinder":
-        return max(0.0, math.hypot(x - ob.x, y - ob.y) - ob.radius)
-    u, w = ob.local(x, y)
-    return math.hypot(max(0.0, abs(u) - ob.half_x), max(0.0, abs(w) - ob.half_y))
+    return float(ob.distance(x, y))
 
 
 def in_view(ob: Obstacle, x: float, y: float, yaw: float, reach: float, half_fov: float

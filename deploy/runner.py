@@ -47,6 +47,41 @@ class Cores:
         return np.array([g.x, g.y, g.yaw])
 
 
+# an obstacle counts as mapped once one of its cells is observed (variance below this
+# fraction of the prior) with a mean standing plant.obstacle_height_m above the bare terrain
+MAPPED_VARIANCE_FRACTION = 0.5
+
+
+def mapped_obstacles(cells: tuple[np.ndarray, ...], mean: np.ndarray, variance: np.ndarray,
+                     terrain: np.ndarray, min_height: float, max_variance: float) -> np.ndarray:
+    """(n_obstacles,) bool: which obstacles the map shows, from their flat cell indices
+    (`Scenario.obstacle_cells`): some cell observed (variance below `max_variance`) whose
+    mean stands `min_height` or more above the bare terrain."""
+    m, v, g = mean.ravel(), variance.ravel(), terrain.ravel()
+    return np.array([bool(np.any((v[c] < max_variance) & (m[c] - g[c] >= min_height)))
+                     for c in cells], dtype=bool)
+
+
+def collision_record(cores: Cores, x: np.ndarray, t: float,
+                     mapped_at: dict[int, float]) -> dict[str, Any] | None:
+    """What a colliding state is on, for the run record: each obstacle with its place, its
+    `hidden` flag and when the map first showed it (null: never before the collision)."""
+    c = plant.collision_of(cores.plant, x)
+    if c is None:
+        return None
+    obs = []
+    for i in c.obstacles:
+        ob = cores.scenario.obstacles[i]
+        seen = mapped_at.get(i)
+        obs.append({"index": i, "kind": ob.kind, "x": ob.x, "y": ob.y, "hidden": ob.hidden,
+                    "mapped_at_s": None if seen is None else round(seen, 3),
+                    "mapped_for_s": None if seen is None else round(t - seen, 3)})
+    return {"t_s": round(t, 3), "x": round(float(x[S.X]), 3), "y": round(float(x[S.Y]), 3),
+            "heading_rad": round(float(x[S.PSI]), 4),
+            "speed_mps": round(math.hypot(x[S.V], x[S.v]), 3),
+            "off_map": c.off_map, "obstacles": obs}
+
+
 @dataclass
 class EpisodeResult:
     outcome: str
@@ -56,6 +91,7 @@ class EpisodeResult:
     trajectory: np.ndarray                  # (steps+1, 7): t, V, v, r, X, Y, Psi
     solve_ms: list[float] = field(default_factory=list)
     snapshots: list[dict[str, Any]] = field(default_factory=list)
+    collision: dict[str, Any] | None = None     # `collision_record` where the outcome is one
 
     def summary(self, cfg: Config) -> dict[str, Any]:
         return {"scenario": cfg.episode.scenario, "controller": cfg.planner.controller,
@@ -78,6 +114,11 @@ def run_episode(cfg: Config, cores: Cores | None = None,
     rows = [np.concatenate([[ps.t], ps.x])]
     solve_ms: list[float] = []
     snapshots: list[dict[str, Any]] = []
+    obstacle_cells = cores.scenario.obstacle_cells(cores.cfg.plant.obstacle_height_m)
+    max_var = MAPPED_VARIANCE_FRACTION * cores.mapper.prior_variance
+    mapped_at: dict[int, float] = {}
+    # the map on the scenario's grid (the default): when it is not, no obstacle counts as mapped
+    track = m.mean.shape == cores.scenario.heightmap.shape
     tick = 0
     while not ps.done:
         x, z = ps.x, plant.ground_z(cores.plant, ps.x[S.X], ps.x[S.Y])
@@ -86,6 +127,12 @@ def run_episode(cfg: Config, cores: Cores | None = None,
                                         x[S.X], x[S.Y], z, x[S.PSI])
         m = mapper.update(cores.mapper, m, depth, cores.camera.intrinsics, pos, rot,
                           np.array([x[S.X], x[S.Y], z, x[S.PSI]]))
+        if track:
+            shown = mapped_obstacles(obstacle_cells, np.asarray(m.mean), np.asarray(m.variance),
+                                     cores.scenario.terrain, cores.cfg.plant.obstacle_height_m,
+                                     max_var)
+            for i in np.flatnonzero(shown):
+                mapped_at.setdefault(int(i), ps.t)
         mean, var = mppi.planning_map(cores.planner, cores.scenario.heightmap, m.mean,
                                       m.variance)
         if tick > 0:
@@ -109,5 +156,7 @@ def run_episode(cfg: Config, cores: Cores | None = None,
             if ps.done:
                 break
         tick += 1
+    collision = (collision_record(cores, ps.x, ps.t, mapped_at)
+                 if ps.outcome == "collision" else None)
     return EpisodeResult(ps.outcome, ps.time_to_goal_s, ps.t, time.monotonic() - wall0,
-                         np.array(rows), solve_ms, snapshots)
+                         np.array(rows), solve_ms, snapshots, collision)

@@ -43,6 +43,44 @@ def test_collision_with_an_obstacle_and_the_map_edge():
     assert core.judge(p, at(p, 0.5, 40.0)).outcome == "collision"
 
 
+def test_collision_names_what_the_footprint_is_on():
+    p = params()
+    rock = p.scenario.obstacles[0]
+    x = rock.x - rock.radius - p.vehicle.footprint_length_m / 2 + 0.1
+    assert core.collision_of(p, at(p, x, rock.y).x) == core.Collision((0,), False)
+    assert core.collision_of(p, at(p, x - 0.4, rock.y).x) is None
+    assert core.collision_of(p, at(p, 0.5, 40.0).x) == core.Collision((), True)
+    # offroad: across the 1.8 m between the first hidden obstacle and the first rock
+    off = core.PlantParams.from_config(load_config(), build_scenario("offroad", 0))
+    obs = off.scenario.obstacles
+    hidden = next(i for i, o in enumerate(obs) if o.hidden)
+    first_rock = min((i for i, o in enumerate(obs) if o.y == 33.0), key=lambda i: obs[i].x)
+    a, b = obs[hidden], obs[first_rock]
+    pose = at(off, (a.x + b.x) / 2, (a.y + b.y) / 2, yaw=math.atan2(b.y - a.y, b.x - a.x))
+    both = core.Collision(tuple(sorted((hidden, first_rock))), False)
+    assert core.collision_of(off, pose.x) == both
+    assert core.collision_text(off, pose.x) == (f"{first_rock}:cylinder(59.5,33),"
+                                                f"{hidden}:cylinder(55.5,32)+hidden")
+    assert core.collision_text(p, at(p, 0.5, 40.0).x) == "off-map"
+    assert core.collision_text(p, at(p, x - 0.4, rock.y).x) == ""
+
+
+def test_obstacle_cells_partition_the_obstacle_mask():
+    for name in ("open-field", "alleyway", "offroad"):
+        s = build_scenario(name, 0)
+        mask = s.obstacle_mask(0.3)
+        cells = s.obstacle_cells(0.3)
+        assert len(cells) == len(s.obstacles) and all(len(c) for c in cells)
+        union = np.zeros(mask.size, bool)
+        for i, c in enumerate(cells):
+            union[c] = True
+            rows, cols = np.divmod(c, mask.shape[1])
+            x, y = s.cell_centres(rows, cols)
+            assert np.all(s.obstacles[i].distance(x, y) == 0.0)
+            assert i in s.obstacles_at(rows[:1], cols[:1])
+        assert np.array_equal(union, mask.ravel())
+
+
 def test_success_stopping_and_timeout():
     p = params(**{"episode.timeout_s": 5.0})
     g = p.scenario.goal

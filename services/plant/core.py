@@ -91,6 +91,41 @@ def collides(params: PlantParams, x: np.ndarray) -> bool:
     return bool(params.obstacle_mask[row, col].any())
 
 
+@dataclass(frozen=True)
+class Collision:
+    """What the footprint of a colliding pose is on: the scenario's obstacles (indices into
+    `scenario.obstacles`) under it, and whether part of it is off the map."""
+    obstacles: tuple[int, ...]
+    off_map: bool
+
+
+def collision_of(params: PlantParams, x: np.ndarray) -> Collision | None:
+    """What the footprint at state x is on; None where it is on neither an obstacle cell nor
+    off the map (`collides` false)."""
+    wx, wy = body_to_world(params.footprint, x[S.X], x[S.Y], x[S.PSI])
+    sc = params.scenario
+    row, col = cell_of(wx, wy, sc.origin, sc.resolution)
+    h, w = params.obstacle_mask.shape
+    inside = (row >= 0) & (row < h) & (col >= 0) & (col < w)
+    row, col = row[inside], col[inside]
+    hit = params.obstacle_mask[row, col]
+    if inside.all() and not hit.any():
+        return None
+    return Collision(sc.obstacles_at(row[hit], col[hit]), not bool(inside.all()))
+
+
+def collision_text(params: PlantParams, x: np.ndarray) -> str:
+    """What the footprint at x is on, for a log line or an event: `index:kind(x,y)` for each
+    obstacle (`+hidden` where it is one) and `off-map`, comma-separated; "" if nothing."""
+    hit = collision_of(params, x)
+    if hit is None:
+        return ""
+    obs = params.scenario.obstacles
+    return ",".join([f"{i}:{obs[i].kind}({obs[i].x:g},{obs[i].y:g})"
+                     + ("+hidden" if obs[i].hidden else "") for i in hit.obstacles]
+                    + (["off-map"] if hit.off_map else []))
+
+
 def goal_distance(params: PlantParams, x: np.ndarray) -> float:
     g = params.scenario.goal
     return math.hypot(x[S.X] - g.x, x[S.Y] - g.y)

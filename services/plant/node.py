@@ -123,9 +123,11 @@ def main(cfg: Config, instance: str = "0", stop: threading.Event | None = None) 
                     if delay < -1.0:            # hopelessly behind: re-anchor, do not burst
                         next_wall = time.monotonic()
         if state.done:
-            event(state.outcome, state,
-                  f"t={state.t:.2f} x={state.x[S.X]:.2f} y={state.x[S.Y]:.2f} "
-                  f"speed={math.hypot(state.x[S.V], state.x[S.v]):.2f}")
+            detail = (f"t={state.t:.2f} x={state.x[S.X]:.2f} y={state.x[S.Y]:.2f} "
+                      f"speed={math.hypot(state.x[S.V], state.x[S.v]):.2f}")
+            if state.outcome == "collision":
+                detail += " on=" + core.collision_text(params, state.x)
+            event(state.outcome, state, detail)
             log.info("episode over: %s at t=%.2f", state.outcome, state.t)
             time.sleep(0.2)   # let the event leave before the session closes
         return state.outcome

@@ -1,0 +1,163 @@
+"""What each collision of an experiment was on: `vamppi collisions DIR`.
+
+A run record of an experiment (deploy/experiment.py) whose outcome is a
+collision carries `collision`: the colliding pose and speed, and every scenario
+obstacle under the footprint with its `hidden` flag and the time the map first
+showed it (deploy/runner.py, `collision_record`). The paper separates
+collisions with obstacles in unobserved space from the rest; this table does
+it with the runs' own maps: an obstacle the map had shown for a second or more
+before the vehicle reached it was in view in time to brake for.
+
+Records written before the field existed have none. `--rerun` runs each such
+collision again in this process with the directory's configuration (the
+episodes are deterministic for a seed); a rerun whose outcome or end time
+differs from the record's is reported as not reproduced, never attributed.
+The attributions a rerun makes are kept beside the runs, in
+`DIR/collisions.json` (runs.jsonl is never rewritten), and used from then on.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+from pathlib import Path
+from typing import Any
+
+from common.config import Config
+from deploy.experiment import KEY_FIELDS, config_digest
+from deploy.runner import Cores, run_episode
+
+UNATTRIBUTED = "unattributed"
+NOT_REPRODUCED = "not reproduced"
+
+
+SAVED = "collisions.json"
+
+
+def _key(r: dict[str, Any]) -> tuple:
+    return tuple(r[k] for k in KEY_FIELDS) + (r.get("config_digest"),)
+
+
+def attribute(cfg: Config, runs: list[dict[str, Any]], rerun: bool = False,
+              progress: bool = False, saved: list[dict[str, Any]] = ()
+              ) -> list[dict[str, Any]]:
+    """One row per collided run: its keys and its `collision` record (status "recorded",
+    or "rerun": found by a rerun now or in `saved`, the rows of an earlier one), or a
+    `status` of UNATTRIBUTED (an older record, no rerun) or NOT_REPRODUCED (the rerun
+    differs)."""
+    from tqdm import tqdm
+    collided = [r for r in runs if r["outcome"] == "collision"]
+    earlier = {_key(s): s for s in saved if s.get("status") == "rerun"}
+    cores: dict[tuple, Cores] = {}
+    digest = config_digest(cfg)
+    rows = []
+    for r in tqdm(collided, desc="collisions", unit="run", disable=not progress):
+        row = {k: r[k] for k in KEY_FIELDS}
+        row["config_digest"] = r.get("config_digest")
+        if "collision" in r:
+            rows.append({**row, "status": "recorded", "collision": r["collision"]})
+            continue
+        if _key(r) in earlier:
+            rows.append({**row, "status": "rerun", "collision": earlier[_key(r)]["collision"]})
+            continue
+        if not rerun:
+            rows.append({**row, "status": UNATTRIBUTED, "collision": None})
+            continue
+        if r.get("config_digest", digest) != digest:
+            rows.append({**row, "status": NOT_REPRODUCED, "collision": None,
+                         "why": f"config digest {r['config_digest']}, this one {digest}"})
+            continue
+        run_cfg = cfg.replace(**{"episode.scenario": r["scenario"],
+                                 "planner.controller": r["controller"],
+                                 "planner.samples": r["samples"], "episode.seed": r["seed"],
+                                 "episode.scenario_seed": r.get("scenario_seed",
+                                                                cfg.episode.scenario_seed)})
+        key = (r["scenario"], r["controller"], r["samples"])
+        if key not in cores:
+            cores[key] = Cores.from_config(run_cfg)
+        res = run_episode(run_cfg, cores[key])
+        if res.outcome != "collision" or abs(res.sim_time_s - r["sim_time_s"]) > 1e-6:
+            rows.append({**row, "status": NOT_REPRODUCED, "collision": None,
+                         "why": f"rerun: {res.outcome} at {res.sim_time_s:.2f} s, "
+                                f"recorded: collision at {r['sim_time_s']:.2f} s"})
+            continue
+        rows.append({**row, "status": "rerun", "collision": res.collision})
+    return rows
+
+
+def load_saved(directory: Path) -> list[dict[str, Any]]:
+    """The rows an earlier rerun kept in `directory` (none if it kept none)."""
+    path = directory / SAVED
+    if not path.exists():
+        return []
+    try:
+        rows = json.loads(path.read_text())
+        if not isinstance(rows, list) or not all(
+                isinstance(r, dict) and all(k in r for k in (*KEY_FIELDS, "status", "collision"))
+                for r in rows):
+            raise ValueError("not a list of attribution rows")
+    except ValueError as exc:
+        raise ValueError(f"{path}: unreadable ({exc}); remove it and attribute again "
+                         "with --rerun") from None
+    return rows
+
+
+def save(directory: Path, earlier: list[dict[str, Any]], rows: list[dict[str, Any]]) -> None:
+    """Keep every rerun's attribution, earlier and new, in `directory` (atomically)."""
+    kept = {_key(r): r for r in [*earlier, *rows] if r["status"] == "rerun"}
+    tmp = directory / (SAVED + ".tmp")
+    tmp.write_text(json.dumps(list(kept.values()), indent=1) + "\n")
+    tmp.replace(directory / SAVED)
+
+
+def _obstacle_label(o: dict[str, Any]) -> str:
+    return f"{o['kind']} ({o['x']:g}, {o['y']:g})" + (", hidden" if o["hidden"] else "")
+
+
+def _span(values: list[float], unit: str) -> str:
+    if not values:
+        return "—"
+    lo, hi, med = min(values), max(values), statistics.median(values)
+    return f"{med:.2f} {unit} ({lo:.2f}-{hi:.2f})" if len(values) > 1 else f"{med:.2f} {unit}"
+
+
+def table(rows: list[dict[str, Any]]) -> str:
+    """Per scenario, controller and sample count: the collisions on each obstacle, how
+    long the map had shown it, and the speed; then the runs left unattributed."""
+    groups: dict[tuple, dict[str, list]] = {}
+    other: dict[tuple, list[str]] = {}
+    for r in rows:
+        g = (r["scenario"], r["controller"], r["samples"])
+        c = r["collision"]
+        if c is None:
+            other.setdefault(g, []).append(f"seed {r['seed']}: {r['status']}")
+            continue
+        names = [_obstacle_label(o) for o in c["obstacles"]] + (["off the map"] if c["off_map"]
+                                                               else [])
+        what = " + ".join(names) or "an obstacle cell of no listed obstacle"
+        shown = [o["mapped_for_s"] for o in c["obstacles"]]
+        entry = groups.setdefault(g, {}).setdefault(what, [])
+        entry.append((None if any(s is None for s in shown) or not shown else min(shown),
+                      c["speed_mps"], r["seed"]))
+    lines = ["| scenario | controller | K | on | collisions | map showed it for | never shown "
+             "| speed | seeds |", "|" + "---|" * 9]
+    for g in sorted(set(groups) | set(other)):
+        for what, hits in sorted(groups.get(g, {}).items(), key=lambda kv: -len(kv[1])):
+            shown = [s for s, _, _ in hits if s is not None]
+            seeds = ", ".join(str(s) for _, _, s in sorted(hits, key=lambda h: h[2]))
+            lines.append(f"| {g[0]} | {g[1]} | {g[2]} | {what} | {len(hits)} "
+                         f"| {_span(shown, 's')} | {len(hits) - len(shown)} "
+                         f"| {_span([v for _, v, _ in hits], 'm/s')} | {seeds} |")
+        if g in other:
+            lines.append(f"| {g[0]} | {g[1]} | {g[2]} | (not attributed) | {len(other[g])} "
+                         f"| | | | {'; '.join(other[g])} |")
+    return "\n".join(lines)
+
+
+def counts(rows: list[dict[str, Any]]) -> dict[str, int]:
+    """How many rows are attributed (recorded or rerun) and how many not."""
+    out = {"collisions": len(rows)}
+    for r in rows:
+        out[r["status"]] = out.get(r["status"], 0) + 1
+    return out
+

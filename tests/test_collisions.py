@@ -1,0 +1,107 @@
+"""What a collision was on: the run record's `collision` and `vamppi collisions`."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from common.config import config_toml, load_config
+from deploy.collisions import NOT_REPRODUCED, UNATTRIBUTED, attribute, load_saved, save, table
+from deploy.experiment import config_digest
+from deploy.runner import Cores, collision_record, mapped_obstacles
+from services.plant.dynamics import S
+
+
+def test_an_obstacle_is_mapped_once_one_of_its_cells_is_observed_standing():
+    terrain = np.zeros((4, 4), np.float32)
+    mean = np.zeros((4, 4), np.float32)
+    var = np.full((4, 4), 3.0, np.float32)
+    cells = (np.array([0, 1]), np.array([10, 11]))
+    args = (terrain, 0.3, 1.5)
+    assert not mapped_obstacles(cells, mean, var, *args).any()      # unseen
+    var.flat[[1, 10]] = 0.01
+    assert not mapped_obstacles(cells, mean, var, *args).any()      # seen, but flat
+    mean.flat[10] = 0.31
+    assert mapped_obstacles(cells, mean, var, *args).tolist() == [False, True]
+    mean.flat[0] = 2.0                                               # tall but unseen
+    assert mapped_obstacles(cells, mean, var, *args).tolist() == [False, True]
+
+
+def test_collision_record_names_the_obstacle_and_how_long_it_was_mapped():
+    cores = Cores.from_config(load_config(overrides=["episode.scenario=offroad"]))
+    obs = cores.scenario.obstacles
+    rock = min((i for i, o in enumerate(obs) if o.y == 33.0), key=lambda i: obs[i].x)
+    x = np.zeros(6)
+    x[S.X], x[S.Y], x[S.PSI], x[S.V] = obs[rock].x, obs[rock].y - 2.5, np.pi / 2, 5.0
+    rec = collision_record(cores, x, 9.5, {rock: 8.0})
+    assert rec["speed_mps"] == 5.0 and rec["off_map"] is False and rec["t_s"] == 9.5
+    assert rec["obstacles"] == [{"index": rock, "kind": "cylinder", "x": obs[rock].x,
+                                 "y": obs[rock].y, "hidden": False, "mapped_at_s": 8.0,
+                                 "mapped_for_s": 1.5}]
+    assert collision_record(cores, x, 9.5, {})["obstacles"][0]["mapped_for_s"] is None
+    x[S.Y] -= 2.0
+    assert collision_record(cores, x, 9.5, {}) is None
+
+
+def _record(seed, outcome="collision", collision=None, **extra):
+    r = {"scenario": "offroad", "controller": "va", "samples": 400, "seed": seed,
+         "outcome": outcome, "sim_time_s": 9.5, **extra}
+    if collision is not None:
+        r["collision"] = collision
+    return r
+
+
+def test_table_groups_collisions_by_obstacle_and_keeps_the_unattributed(tmp_path):
+    hit = {"t_s": 9.5, "x": 60.0, "y": 30.0, "heading_rad": 1.5, "speed_mps": 5.0,
+           "off_map": False, "obstacles": [{"index": 23, "kind": "cylinder", "x": 59.5,
+                                            "y": 33.0, "hidden": False, "mapped_at_s": 8.0,
+                                            "mapped_for_s": 1.5}]}
+    late = json.loads(json.dumps(hit))
+    late["obstacles"][0].update(mapped_at_s=None, mapped_for_s=None)
+    late["speed_mps"] = 6.0
+    runs = [_record(1, collision=hit), _record(2, collision=late), _record(3),
+            _record(4, outcome="success")]
+    rows = attribute(load_config(), runs)
+    assert [r["status"] for r in rows] == ["recorded", "recorded", UNATTRIBUTED]
+    lines = table(rows).splitlines()
+    assert lines[2] == ("| offroad | va | 400 | cylinder (59.5, 33) | 2 | 1.50 s | 1 "
+                        "| 5.50 m/s (5.00-6.00) | 1, 2 |")
+    assert lines[3].startswith("| offroad | va | 400 | (not attributed) | 1 |")
+    assert "seed 3: unattributed" in lines[3]
+    # a rerun's attribution, kept beside the runs, is used from then on
+    kept = [{**{k: v for k, v in runs[2].items() if k in ("scenario", "controller", "samples",
+                                                          "seed")},
+             "config_digest": None, "status": "rerun", "collision": hit}]
+    save(tmp_path, [], kept + rows)
+    assert load_saved(tmp_path) == kept
+    again = attribute(load_config(), runs, saved=load_saved(tmp_path))
+    assert [r["status"] for r in again] == ["recorded", "recorded", "rerun"]
+    assert again[2]["collision"] == hit
+    (tmp_path / "collisions.json").write_text('[{"scenario": "offroad"}]')
+    with pytest.raises(ValueError, match="remove it and attribute again"):
+        load_saved(tmp_path)
+
+
+def test_cli_reruns_an_older_record_and_refuses_what_it_does_not_reproduce(tmp_path):
+    cfg = load_config(overrides=["episode.timeout_s=0.3"])
+    (tmp_path / "config.toml").write_text(config_toml(cfg))
+    rec = {"scenario": "open-field", "controller": "deterministic", "samples": 16, "seed": 0,
+           "outcome": "collision", "sim_time_s": 0.2, "config_digest": config_digest(cfg)}
+    other = dict(rec, seed=1, config_digest="0" * 16)
+    (tmp_path / "runs.jsonl").write_text(json.dumps(rec) + "\n" + json.dumps(other) + "\n")
+    r = subprocess.run([sys.executable, "-m", "deploy.cli", "collisions", str(tmp_path),
+                        "--rerun", "--json"], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    rows = json.loads(r.stdout)
+    assert [x["status"] for x in rows] == [NOT_REPRODUCED, NOT_REPRODUCED]
+    assert "rerun: timeout at 0.30 s" in rows[0]["why"]
+    assert "config digest" in rows[1]["why"]
+    assert json.loads(r.stderr.strip().splitlines()[-1]) == {"collisions": 2,
+                                                             NOT_REPRODUCED: 2}
+    assert json.loads((tmp_path / "collisions.json").read_text()) == []   # nothing to keep
+    (tmp_path / "collisions.json").write_text("{torn")
+    r = subprocess.run([sys.executable, "-m", "deploy.cli", "collisions", str(tmp_path)],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 2 and "collisions.json: unreadable" in r.stderr
