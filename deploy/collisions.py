@@ -23,8 +23,11 @@ import statistics
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from common.config import Config
 from deploy.experiment import KEY_FIELDS, config_digest
+from deploy.reveal import stopping_distance
 from deploy.runner import Cores, run_episode
 
 UNATTRIBUTED = "unattributed"
@@ -36,6 +39,27 @@ SAVED = "collisions.json"
 
 def _key(r: dict[str, Any]) -> tuple:
     return tuple(r[k] for k in KEY_FIELDS) + (r.get("config_digest"),)
+
+
+def room_to_stop(cfg: Config, path: Any, c: dict[str, Any]) -> dict[str, Any] | None:
+    """From the moment the map showed the last of the collision's obstacles to the collision:
+    the distance travelled along the recorded 10 Hz path (t, X, Y, V), the speed then, and
+    the distance needed to stop from that speed (`deploy.reveal.stopping_distance`: one
+    control tick, the brake ramp, full braking). None where an obstacle was never shown or
+    the collision is off the map only."""
+    shown = [o["mapped_at_s"] for o in c["obstacles"]]
+    if not shown or any(s is None for s in shown):
+        return None
+    t_m = max(shown)
+    p = np.asarray(path, float)
+    p = np.vstack([p[p[:, 0] < c["t_s"] - 1e-9], [c["t_s"], c["x"], c["y"], c["speed_mps"]]])
+    at = [float(np.interp(t_m, p[:, 0], p[:, k])) for k in (1, 2, 3)]
+    later = p[p[:, 0] > t_m]
+    xy = np.vstack([at[:2], later[:, 1:3]])
+    travelled = float(np.sum(np.hypot(*np.diff(xy, axis=0).T)))
+    stop = stopping_distance(cfg, at[2])
+    return {"travelled_m": round(travelled, 2), "speed_mps": round(at[2], 2),
+            "stopping_m": round(stop, 2), "could_stop": travelled > stop}
 
 
 def attribute(cfg: Config, runs: list[dict[str, Any]], rerun: bool = False,
@@ -82,6 +106,9 @@ def attribute(cfg: Config, runs: list[dict[str, Any]], rerun: bool = False,
                                 f"recorded: collision at {r['sim_time_s']:.2f} s"})
             continue
         rows.append({**row, "status": "rerun", "collision": res.collision})
+    for row, r in zip(rows, collided, strict=True):
+        if row["collision"] is not None and r.get("path"):
+            row["room"] = room_to_stop(cfg, r["path"], row["collision"])
     return rows
 
 
@@ -123,7 +150,9 @@ def _span(values: list[float], unit: str) -> str:
 
 def table(rows: list[dict[str, Any]]) -> str:
     """Per scenario, controller and sample count: the collisions on each obstacle, how
-    long the map had shown it, and the speed; then the runs left unattributed."""
+    long the map had shown it, how far the vehicle went from then on against the distance
+    it needed to stop, how many could have stopped, and the speed at impact; then the runs
+    left unattributed."""
     groups: dict[tuple, dict[str, list]] = {}
     other: dict[tuple, list[str]] = {}
     for r in rows:
@@ -136,21 +165,26 @@ def table(rows: list[dict[str, Any]]) -> str:
                                                                else [])
         what = " + ".join(names) or "an obstacle cell of no listed obstacle"
         shown = [o["mapped_for_s"] for o in c["obstacles"]]
-        entry = groups.setdefault(g, {}).setdefault(what, [])
-        entry.append((None if any(s is None for s in shown) or not shown else min(shown),
-                      c["speed_mps"], r["seed"]))
+        groups.setdefault(g, {}).setdefault(what, []).append({
+            "shown": None if any(s is None for s in shown) or not shown else min(shown),
+            "room": r.get("room"), "speed": c["speed_mps"], "seed": r["seed"]})
     lines = ["| scenario | controller | K | on | collisions | map showed it for | never shown "
-             "| speed | seeds |", "|" + "---|" * 9]
+             "| then travelled | needed to stop | could have stopped | speed at impact | seeds |",
+             "|" + "---|" * 12]
     for g in sorted(set(groups) | set(other)):
         for what, hits in sorted(groups.get(g, {}).items(), key=lambda kv: -len(kv[1])):
-            shown = [s for s, _, _ in hits if s is not None]
-            seeds = ", ".join(str(s) for _, _, s in sorted(hits, key=lambda h: h[2]))
-            lines.append(f"| {g[0]} | {g[1]} | {g[2]} | {what} | {len(hits)} "
-                         f"| {_span(shown, 's')} | {len(hits) - len(shown)} "
-                         f"| {_span([v for _, v, _ in hits], 'm/s')} | {seeds} |")
+            shown = [h["shown"] for h in hits if h["shown"] is not None]
+            room = [h["room"] for h in hits if h["room"] is not None]
+            seeds = ", ".join(str(h["seed"]) for h in sorted(hits, key=lambda h: h["seed"]))
+            lines.append(
+                f"| {g[0]} | {g[1]} | {g[2]} | {what} | {len(hits)} | {_span(shown, 's')} "
+                f"| {len(hits) - len(shown)} | {_span([x['travelled_m'] for x in room], 'm')} "
+                f"| {_span([x['stopping_m'] for x in room], 'm')} "
+                f"| {sum(x['could_stop'] for x in room)} "
+                f"| {_span([h['speed'] for h in hits], 'm/s')} | {seeds} |")
         if g in other:
             lines.append(f"| {g[0]} | {g[1]} | {g[2]} | (not attributed) | {len(other[g])} "
-                         f"| | | | {'; '.join(other[g])} |")
+                         f"| | | | | | | {'; '.join(other[g])} |")
     return "\n".join(lines)
 
 

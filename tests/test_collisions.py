@@ -8,8 +8,17 @@ import numpy as np
 import pytest
 
 from common.config import config_toml, load_config
-from deploy.collisions import NOT_REPRODUCED, UNATTRIBUTED, attribute, load_saved, save, table
+from deploy.collisions import (
+    NOT_REPRODUCED,
+    UNATTRIBUTED,
+    attribute,
+    load_saved,
+    room_to_stop,
+    save,
+    table,
+)
 from deploy.experiment import config_digest
+from deploy.reveal import stopping_distance
 from deploy.runner import Cores, collision_record, mapped_obstacles
 from services.plant.dynamics import S
 
@@ -45,16 +54,34 @@ def test_collision_record_names_the_obstacle_and_how_long_it_was_mapped():
     assert collision_record(cores, x, 9.5, {}) is None
 
 
+# a straight run north at 6 m/s, x = 60, from y = 18.5 at t = 7.0 to the collision at 9.5 s
+PATH = [[round(7.0 + 0.1 * i, 1), 60.0, 18.5 + 0.6 * i, 6.0] for i in range(26)]
+
+
+def test_room_to_stop_measures_along_the_path_from_the_moment_the_map_showed_it():
+    cfg = load_config()
+    c = {"t_s": 9.45, "x": 60.0, "y": 33.2, "speed_mps": 6.0,
+         "obstacles": [{"mapped_at_s": 8.05}, {"mapped_at_s": 7.5}]}
+    room = room_to_stop(cfg, PATH, c)            # from 8.05 s (the later), 1.4 s at 6 m/s
+    assert room["travelled_m"] == pytest.approx(8.4, abs=0.01)
+    assert room["speed_mps"] == 6.0 and room["stopping_m"] == round(stopping_distance(cfg, 6.0), 2)
+    assert room["could_stop"] == (8.4 > stopping_distance(cfg, 6.0))
+    c["obstacles"][0]["mapped_at_s"] = 9.0
+    assert room_to_stop(cfg, PATH, c)["could_stop"] is False           # 2.7 m at 6 m/s
+    c["obstacles"][1]["mapped_at_s"] = None
+    assert room_to_stop(cfg, PATH, c) is None                           # never shown
+
+
 def _record(seed, outcome="collision", collision=None, **extra):
     r = {"scenario": "offroad", "controller": "va", "samples": 400, "seed": seed,
-         "outcome": outcome, "sim_time_s": 9.5, **extra}
+         "outcome": outcome, "sim_time_s": 9.5, "path": PATH, **extra}
     if collision is not None:
         r["collision"] = collision
     return r
 
 
 def test_table_groups_collisions_by_obstacle_and_keeps_the_unattributed(tmp_path):
-    hit = {"t_s": 9.5, "x": 60.0, "y": 30.0, "heading_rad": 1.5, "speed_mps": 5.0,
+    hit = {"t_s": 9.5, "x": 60.0, "y": 33.5, "heading_rad": 1.5, "speed_mps": 5.0,
            "off_map": False, "obstacles": [{"index": 23, "kind": "cylinder", "x": 59.5,
                                             "y": 33.0, "hidden": False, "mapped_at_s": 8.0,
                                             "mapped_for_s": 1.5}]}
@@ -66,8 +93,9 @@ def test_table_groups_collisions_by_obstacle_and_keeps_the_unattributed(tmp_path
     rows = attribute(load_config(), runs)
     assert [r["status"] for r in rows] == ["recorded", "recorded", UNATTRIBUTED]
     lines = table(rows).splitlines()
-    assert lines[2] == ("| offroad | va | 400 | cylinder (59.5, 33) | 2 | 1.50 s | 1 "
-                        "| 5.50 m/s (5.00-6.00) | 1, 2 |")
+    need = f"{stopping_distance(load_config(), 6.0):.2f} m"
+    assert lines[2] == ("| offroad | va | 400 | cylinder (59.5, 33) | 2 | 1.50 s | 1 | 9.00 m "
+                        f"| {need} | 1 | 5.50 m/s (5.00-6.00) | 1, 2 |")
     assert lines[3].startswith("| offroad | va | 400 | (not attributed) | 1 |")
     assert "seed 3: unattributed" in lines[3]
     # a rerun's attribution, kept beside the runs, is used from then on
