@@ -6,7 +6,9 @@ seeds `seed, seed + 1, ...` on the same scenario (its terrain fixed by
 `deploy.runner`.
 
 Output directory:
-  runs.jsonl     one record per finished run, appended and fsynced as each ends:
+  runs.jsonl     one record per finished run (outcome, time to goal, 10 Hz path,
+                 solve times; a collision's obstacles and when the map first showed
+                 them: deploy/collisions.py), appended and fsynced as each ends:
                  an interrupted experiment keeps its finished runs and resumes
                  where it stopped (a torn last line is ignored); each record
                  carries the configuration's digest, and resuming with another

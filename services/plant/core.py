@@ -79,13 +79,19 @@ def ground_z(params: PlantParams, x: float, y: float) -> float:
     return float(bilinear(sc.terrain, np.float64(x), np.float64(y), sc.origin, sc.resolution))
 
 
-def collides(params: PlantParams, x: np.ndarray) -> bool:
-    """Any footprint point on an obstacle cell, or off the map."""
+def _footprint_cells(params: PlantParams, x: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The cells (row, col) of the footprint points at state x, and which are on the map."""
     wx, wy = body_to_world(params.footprint, x[S.X], x[S.Y], x[S.PSI])
     sc = params.scenario
     row, col = cell_of(wx, wy, sc.origin, sc.resolution)
     h, w = params.obstacle_mask.shape
-    inside = (row >= 0) & (row < h) & (col >= 0) & (col < w)
+    return row, col, (row >= 0) & (row < h) & (col >= 0) & (col < w)
+
+
+def collides(params: PlantParams, x: np.ndarray) -> bool:
+    """Any footprint point on an obstacle cell, or off the map."""
+    row, col, inside = _footprint_cells(params, x)
     if not inside.all():
         return True
     return bool(params.obstacle_mask[row, col].any())
@@ -102,16 +108,12 @@ class Collision:
 def collision_of(params: PlantParams, x: np.ndarray) -> Collision | None:
     """What the footprint at state x is on; None where it is on neither an obstacle cell nor
     off the map (`collides` false)."""
-    wx, wy = body_to_world(params.footprint, x[S.X], x[S.Y], x[S.PSI])
-    sc = params.scenario
-    row, col = cell_of(wx, wy, sc.origin, sc.resolution)
-    h, w = params.obstacle_mask.shape
-    inside = (row >= 0) & (row < h) & (col >= 0) & (col < w)
+    row, col, inside = _footprint_cells(params, x)
     row, col = row[inside], col[inside]
     hit = params.obstacle_mask[row, col]
     if inside.all() and not hit.any():
         return None
-    return Collision(sc.obstacles_at(row[hit], col[hit]), not bool(inside.all()))
+    return Collision(params.scenario.obstacles_at(row[hit], col[hit]), not bool(inside.all()))
 
 
 def collision_text(params: PlantParams, x: np.ndarray) -> str:
