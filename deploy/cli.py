@@ -9,7 +9,7 @@
         --samples 400,1000,4000 --runs 100 --seed 0 --out DIR
     vamppi config ...        print the effective configuration as JSON
     vamppi reveal DIR        when each hidden obstacle was first seen, and could it stop
-    vamppi collisions DIR    what each collision was on, and how long the map had shown it
+    vamppi collisions DIR... what each collision was on, and how long the map had shown it
 
 Every command takes `--config FILE` and `--set section.key=value` (repeatable).
 """
@@ -318,28 +318,32 @@ def cmd_reveal(args: argparse.Namespace, cfg: Config) -> int:
 
 
 def cmd_collisions(args: argparse.Namespace, cfg: Config) -> int:
-    """What each collision of an experiment was on (deploy/collisions.py)."""
+    """What each collision of one or more experiments was on (deploy/collisions.py): one
+    table over all of them (a table of record split over two directories reads as one)."""
     from deploy.collisions import attribute, counts, load_saved, save, table
     from deploy.experiment import read_runs
-    path = Path(args.runs)
-    if path.is_dir():
-        path = path / "runs.jsonl"
-    if not path.exists():
-        raise FileNotFoundError(f"no such file: {path}")
-    saved = path.parent / "config.toml"            # the experiment's own configuration
-    if args.config is None and saved.exists():
-        cfg = load_config(saved, overrides_from_args(args))
-    runs = [r for r in read_runs(path)
-            if args.only is None or r["controller"] in args.only.split(",")]
-    try:
-        earlier = load_saved(path.parent)          # the attributions of earlier reruns
-    except ValueError as exc:
-        print(f"vamppi collisions: {exc}", file=sys.stderr)
-        return 2
-    rows = attribute(cfg, runs, rerun=args.rerun, progress=args.rerun and sys.stderr.isatty(),
-                     saved=earlier)
-    if args.rerun:
-        save(path.parent, earlier, rows)
+    rows = []
+    for given in args.runs:
+        path = Path(given)
+        if path.is_dir():
+            path = path / "runs.jsonl"
+        if not path.exists():
+            raise FileNotFoundError(f"no such file: {path}")
+        saved = path.parent / "config.toml"        # the experiment's own configuration
+        run_cfg = (load_config(saved, overrides_from_args(args))
+                   if args.config is None and saved.exists() else cfg)
+        runs = [r for r in read_runs(path)
+                if args.only is None or r["controller"] in args.only.split(",")]
+        try:
+            earlier = load_saved(path.parent)      # the attributions of earlier reruns
+        except ValueError as exc:
+            print(f"vamppi collisions: {exc}", file=sys.stderr)
+            return 2
+        found = attribute(run_cfg, runs, rerun=args.rerun,
+                          progress=args.rerun and sys.stderr.isatty(), saved=earlier)
+        if args.rerun:
+            save(path.parent, earlier, found)
+        rows += found
     print(json.dumps(rows, indent=1) if args.json else table(rows))
     print(json.dumps(counts(rows)), file=sys.stderr)
     return 0
@@ -425,7 +429,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("collisions", help="what each collision of an experiment was on, and "
                                           "how long the map had shown it")
-    p.add_argument("runs", help="an experiment's runs.jsonl (or its directory)")
+    p.add_argument("runs", nargs="+",
+                   help="experiments' runs.jsonl (or their directories): one table over all")
     p.add_argument("--controller", dest="only", help="only these controllers (a,b)")
     p.add_argument("--rerun", action="store_true",
                    help="run again the collisions recorded without attribution (older records)")

@@ -129,6 +129,18 @@ def test_cli_reruns_an_older_record_and_refuses_what_it_does_not_reproduce(tmp_p
     assert json.loads(r.stderr.strip().splitlines()[-1]) == {"collisions": 2,
                                                              NOT_REPRODUCED: 2}
     assert json.loads((tmp_path / "collisions.json").read_text()) == []   # nothing to keep
+    # two directories, one table: the older records stay unattributed without --rerun
+    second = tmp_path / "second"
+    second.mkdir()
+    hit = {"t_s": 9.5, "x": 60.0, "y": 33.5, "heading_rad": 1.5, "speed_mps": 5.0,
+           "off_map": False, "obstacles": []}
+    (second / "runs.jsonl").write_text(json.dumps(_record(5, collision=hit)) + "\n")
+    r = subprocess.run([sys.executable, "-m", "deploy.cli", "collisions", str(tmp_path),
+                        str(second)], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert json.loads(r.stderr.strip().splitlines()[-1]) == {"collisions": 3, UNATTRIBUTED: 2,
+                                                             "recorded": 1}
+    assert "| offroad | va | 400 | an obstacle cell of no listed obstacle | 1 |" in r.stdout
     (tmp_path / "collisions.json").write_text("{torn")
     r = subprocess.run([sys.executable, "-m", "deploy.cli", "collisions", str(tmp_path)],
                        capture_output=True, text=True, timeout=600)
