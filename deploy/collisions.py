@@ -148,6 +148,26 @@ def _span(values: list[float], unit: str) -> str:
     return f"{med:.2f} {unit} ({lo:.2f}-{hi:.2f})" if len(values) > 1 else f"{med:.2f} {unit}"
 
 
+def hidden_lead(c: dict[str, Any]) -> float | None | str:
+    """Seconds from the moment the map first showed the last-shown of the scenario's hidden
+    obstacles to the collision; None if none had been shown; "" where the record predates
+    the field."""
+    if "hidden" not in c:
+        return ""
+    shown = [h["mapped_at_s"] for h in c["hidden"] if h["mapped_at_s"] is not None]
+    return round(c["t_s"] - max(shown), 3) if shown else None
+
+
+def _hidden_cell(leads: list[float | None | str]) -> str:
+    known = [x for x in leads if x != ""]
+    if not known:
+        return "—"
+    shown = [x for x in known if x is not None]
+    text = _span(shown, "s") if shown else "none shown"
+    return text + (f"; none shown in {len(known) - len(shown)}" if shown
+                   and len(shown) < len(known) else "")
+
+
 def table(rows: list[dict[str, Any]]) -> str:
     """Per scenario, controller and sample count: the collisions on each obstacle, how
     long the map had shown it, how far the vehicle went from then on against the distance
@@ -167,10 +187,11 @@ def table(rows: list[dict[str, Any]]) -> str:
         shown = [o["mapped_for_s"] for o in c["obstacles"]]
         groups.setdefault(g, {}).setdefault(what, []).append({
             "shown": None if any(s is None for s in shown) or not shown else min(shown),
-            "room": r.get("room"), "speed": c["speed_mps"], "seed": r["seed"]})
+            "room": r.get("room"), "speed": c["speed_mps"], "seed": r["seed"],
+            "hidden": hidden_lead(c)})
     lines = ["| scenario | controller | K | on | collisions | map showed it for | never shown "
-             "| then travelled | needed to stop | could have stopped | speed at impact | seeds |",
-             "|" + "---|" * 12]
+             "| then travelled | needed to stop | could have stopped | speed at impact "
+             "| a hidden obstacle appeared before impact | seeds |", "|" + "---|" * 13]
     for g in sorted(set(groups) | set(other)):
         for what, hits in sorted(groups.get(g, {}).items(), key=lambda kv: -len(kv[1])):
             shown = [h["shown"] for h in hits if h["shown"] is not None]
@@ -181,10 +202,11 @@ def table(rows: list[dict[str, Any]]) -> str:
                 f"| {len(hits) - len(shown)} | {_span([x['travelled_m'] for x in room], 'm')} "
                 f"| {_span([x['stopping_m'] for x in room], 'm')} "
                 f"| {sum(x['could_stop'] for x in room)} "
-                f"| {_span([h['speed'] for h in hits], 'm/s')} | {seeds} |")
+                f"| {_span([h['speed'] for h in hits], 'm/s')} "
+                f"| {_hidden_cell([h['hidden'] for h in hits])} | {seeds} |")
         if g in other:
             lines.append(f"| {g[0]} | {g[1]} | {g[2]} | (not attributed) | {len(other[g])} "
-                         f"| | | | | | | {'; '.join(other[g])} |")
+                         f"| | | | | | | | {'; '.join(other[g])} |")
     return "\n".join(lines)
 
 

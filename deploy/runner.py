@@ -65,7 +65,9 @@ def mapped_obstacles(cells: tuple[np.ndarray, ...], mean: np.ndarray, variance: 
 def collision_record(cores: Cores, x: np.ndarray, t: float,
                      mapped_at: dict[int, float]) -> dict[str, Any] | None:
     """What a colliding state is on, for the run record: each obstacle with its place, its
-    `hidden` flag and when the map first showed it (null: never before the collision)."""
+    `hidden` flag and when the map first showed it (null: never before the collision);
+    and when the map first showed each of the scenario's hidden obstacles, hit or not (a
+    collision with a wall just after one appeared is the swerve it caused)."""
     c = plant.collision_of(cores.plant, x)
     if c is None:
         return None
@@ -76,10 +78,13 @@ def collision_record(cores: Cores, x: np.ndarray, t: float,
         obs.append({"index": i, "kind": ob.kind, "x": ob.x, "y": ob.y, "hidden": ob.hidden,
                     "mapped_at_s": None if seen is None else round(seen, 3),
                     "mapped_for_s": None if seen is None else round(t - seen, 3)})
+    hidden = [{"index": i, "x": ob.x, "y": ob.y,
+               "mapped_at_s": None if mapped_at.get(i) is None else round(mapped_at[i], 3)}
+              for i, ob in enumerate(cores.scenario.obstacles) if ob.hidden]
     return {"t_s": round(t, 3), "x": round(float(x[S.X]), 3), "y": round(float(x[S.Y]), 3),
             "heading_rad": round(float(x[S.PSI]), 4),
             "speed_mps": round(math.hypot(x[S.V], x[S.v]), 3),
-            "off_map": c.off_map, "obstacles": obs}
+            "off_map": c.off_map, "obstacles": obs, "hidden": hidden}
 
 
 @dataclass

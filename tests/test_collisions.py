@@ -12,6 +12,7 @@ from deploy.collisions import (
     NOT_REPRODUCED,
     UNATTRIBUTED,
     attribute,
+    hidden_lead,
     load_saved,
     room_to_stop,
     save,
@@ -44,11 +45,14 @@ def test_collision_record_names_the_obstacle_and_how_long_it_was_mapped():
     rock = min((i for i, o in enumerate(obs) if o.y == 33.0), key=lambda i: obs[i].x)
     x = np.zeros(6)
     x[S.X], x[S.Y], x[S.PSI], x[S.V] = obs[rock].x, obs[rock].y - 2.5, np.pi / 2, 5.0
-    rec = collision_record(cores, x, 9.5, {rock: 8.0})
+    hidden = [i for i, o in enumerate(obs) if o.hidden]
+    rec = collision_record(cores, x, 9.5, {rock: 8.0, hidden[0]: 9.0})
     assert rec["speed_mps"] == 5.0 and rec["off_map"] is False and rec["t_s"] == 9.5
     assert rec["obstacles"] == [{"index": rock, "kind": "cylinder", "x": obs[rock].x,
                                  "y": obs[rock].y, "hidden": False, "mapped_at_s": 8.0,
                                  "mapped_for_s": 1.5}]
+    assert [(h["index"], h["mapped_at_s"]) for h in rec["hidden"]] == [(hidden[0], 9.0),
+                                                                       (hidden[1], None)]
     assert collision_record(cores, x, 9.5, {})["obstacles"][0]["mapped_for_s"] is None
     x[S.Y] -= 2.0
     assert collision_record(cores, x, 9.5, {}) is None
@@ -88,6 +92,8 @@ def test_table_groups_collisions_by_obstacle_and_keeps_the_unattributed(tmp_path
     late = json.loads(json.dumps(hit))
     late["obstacles"][0].update(mapped_at_s=None, mapped_for_s=None)
     late["speed_mps"] = 6.0
+    late["hidden"] = [{"index": 26, "x": 55.5, "y": 32.0, "mapped_at_s": 9.1},
+                      {"index": 27, "x": 52.0, "y": 37.0, "mapped_at_s": 8.9}]
     runs = [_record(1, collision=hit), _record(2, collision=late), _record(3),
             _record(4, outcome="success")]
     rows = attribute(load_config(), runs)
@@ -95,9 +101,11 @@ def test_table_groups_collisions_by_obstacle_and_keeps_the_unattributed(tmp_path
     lines = table(rows).splitlines()
     need = f"{stopping_distance(load_config(), 6.0):.2f} m"
     assert lines[2] == ("| offroad | va | 400 | cylinder (59.5, 33) | 2 | 1.50 s | 1 | 9.00 m "
-                        f"| {need} | 1 | 5.50 m/s (5.00-6.00) | 1, 2 |")
+                        f"| {need} | 1 | 5.50 m/s (5.00-6.00) | 0.40 s | 1, 2 |")
     assert lines[3].startswith("| offroad | va | 400 | (not attributed) | 1 |")
     assert "seed 3: unattributed" in lines[3]
+    assert hidden_lead({"t_s": 9.5, "hidden": [{"mapped_at_s": None}]}) is None
+    assert hidden_lead(hit) == ""                                     # an older record
     # a rerun's attribution, kept beside the runs, is used from then on
     kept = [{**{k: v for k, v in runs[2].items() if k in ("scenario", "controller", "samples",
                                                           "seed")},
