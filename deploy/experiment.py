@@ -18,7 +18,8 @@ Output directory:
                  reads it
   summary.json   per scenario/controller/samples: counts of each outcome and the
                  time to goal over successful runs
-  summary.md     the same as a markdown table, the paper's figures beside ours
+  summary.md     the same as a markdown table, the paper's figures beside ours; then
+                 what each collision was on (deploy/collisions.py)
   *.png          the plots of `deploy.plots`
 """
 
@@ -170,6 +171,23 @@ def markdown_table(summary: list[dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def collisions_section(cfg: Config, runs: list[dict[str, Any]], out: Path) -> str:
+    """summary.md's second table, what each collision was on (deploy/collisions.py; records
+    older than the `collision` field as `vamppi collisions DIR --rerun` left them); "" when
+    no run collided."""
+    from deploy import collisions
+    if not any(r["outcome"] == "collision" for r in runs):
+        return ""
+    try:
+        saved = collisions.load_saved(out)
+    except ValueError as exc:
+        log.warning("%s", exc)
+        saved = []
+    rows = collisions.attribute(cfg, runs, saved=saved)
+    return ("\nWhat the collisions were on (`vamppi collisions DIR`):\n\n"
+            + collisions.table(rows) + "\n")
+
+
 def experiment(cfg: Config, scenarios: list[str], controllers: list[str], samples: list[int],
                runs: int, seed: int, out: Path, plots: bool = True,
                progress: bool = True) -> list[dict[str, Any]]:
@@ -211,7 +229,8 @@ def experiment(cfg: Config, scenarios: list[str], controllers: list[str], sample
     all_runs = read_runs(runs_path)
     summary = summarize(all_runs)
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    (out / "summary.md").write_text(markdown_table(summary))
+    (out / "summary.md").write_text(markdown_table(summary) + collisions_section(cfg, all_runs,
+                                                                                out))
     if plots:
         from deploy import plots as plotting
         plotting.plot_all(cfg, all_runs, summary, out)

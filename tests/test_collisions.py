@@ -18,7 +18,7 @@ from deploy.collisions import (
     save,
     table,
 )
-from deploy.experiment import config_digest
+from deploy.experiment import collisions_section, config_digest
 from deploy.reveal import stopping_distance
 from deploy.runner import Cores, collision_record, mapped_obstacles
 from services.plant.dynamics import S
@@ -115,9 +115,13 @@ def test_table_groups_collisions_by_obstacle_and_keeps_the_unattributed(tmp_path
     again = attribute(load_config(), runs, saved=load_saved(tmp_path))
     assert [r["status"] for r in again] == ["recorded", "recorded", "rerun"]
     assert again[2]["collision"] == hit
+    section = collisions_section(load_config(), runs, tmp_path)       # summary.md's table
+    assert section.splitlines()[3:] == table(again).splitlines()
+    assert collisions_section(load_config(), runs[3:], tmp_path) == ""  # nothing collided
     (tmp_path / "collisions.json").write_text('[{"scenario": "offroad"}]')
     with pytest.raises(ValueError, match="remove it and attribute again"):
         load_saved(tmp_path)
+    assert collisions_section(load_config(), runs, tmp_path).splitlines()[3:] == lines
 
 
 def test_cli_reruns_an_older_record_and_refuses_what_it_does_not_reproduce(tmp_path):
