@@ -3,10 +3,11 @@
 A run record of an experiment (deploy/experiment.py) whose outcome is a
 collision carries `collision`: the colliding pose and speed, and every scenario
 obstacle under the footprint with its `hidden` flag and the time the map first
-showed it (deploy/runner.py, `collision_record`). The paper separates
-collisions with obstacles in unobserved space from the rest; this table does
-it with the runs' own maps: an obstacle the map had shown for a second or more
-before the vehicle reached it was in view in time to brake for.
+showed it, and when each of the scenario's hidden obstacles first appeared
+(deploy/runner.py, `collision_record`). The paper separates collisions with
+obstacles in unobserved space from the rest; this table does it with the runs'
+own maps: how long the map had shown what was hit, and whether the vehicle had
+travelled farther since than it needed to stop (`room_to_stop`).
 
 Records written before the field existed have none. `--rerun` runs each such
 collision again in this process with the directory's configuration (the
@@ -32,8 +33,6 @@ from deploy.runner import Cores, run_episode
 
 UNATTRIBUTED = "unattributed"
 NOT_REPRODUCED = "not reproduced"
-
-
 SAVED = "collisions.json"
 
 
@@ -98,6 +97,8 @@ def attribute(cfg: Config, runs: list[dict[str, Any]], rerun: bool = False,
                                                                 cfg.episode.scenario_seed)})
         key = (r["scenario"], r["controller"], r["samples"])
         if key not in cores:
+            if len(cores) >= 8:          # the planner keeps 8 compiled solvers (mppi.solver)
+                cores.clear()
             cores[key] = Cores.from_config(run_cfg)
         res = run_episode(run_cfg, cores[key])
         if res.outcome != "collision" or abs(res.sim_time_s - r["sim_time_s"]) > 1e-6:
