@@ -298,11 +298,12 @@ def cmd_timing(args: argparse.Namespace, cfg: Config) -> int:
     return 0
 
 
-def cmd_reveal(args: argparse.Namespace, cfg: Config) -> int:
-    """First sightings of each (hidden) obstacle along the paths of an experiment's runs."""
+def experiment_runs(args: argparse.Namespace, given: str, cfg: Config
+                    ) -> tuple[Path, Config, list[dict[str, Any]]]:
+    """An experiment's runs.jsonl (`given`, or its directory), the configuration to read it
+    with (its own config.toml, unless --config is given) and its runs (--controller's)."""
     from deploy.experiment import read_runs
-    from deploy.reveal import reveal_runs, table
-    path = Path(args.runs)
+    path = Path(given)
     if path.is_dir():
         path = path / "runs.jsonl"
     if not path.exists():
@@ -312,6 +313,13 @@ def cmd_reveal(args: argparse.Namespace, cfg: Config) -> int:
         cfg = load_config(saved, overrides_from_args(args))
     runs = [r for r in read_runs(path)
             if args.only is None or r["controller"] in args.only.split(",")]
+    return path, cfg, runs
+
+
+def cmd_reveal(args: argparse.Namespace, cfg: Config) -> int:
+    """First sightings of each (hidden) obstacle along the paths of an experiment's runs."""
+    from deploy.reveal import reveal_runs, table
+    _, cfg, runs = experiment_runs(args, args.runs, cfg)
     rows = reveal_runs(cfg, runs, "all" if args.all_obstacles else "hidden")
     print(json.dumps(rows, indent=1) if args.json else table(rows))
     return 0
@@ -321,19 +329,9 @@ def cmd_collisions(args: argparse.Namespace, cfg: Config) -> int:
     """What each collision of one or more experiments was on (deploy/collisions.py): one
     table over all of them (a table of record split over two directories reads as one)."""
     from deploy.collisions import attribute, counts, load_saved, save, table
-    from deploy.experiment import read_runs
     rows = []
     for given in args.runs:
-        path = Path(given)
-        if path.is_dir():
-            path = path / "runs.jsonl"
-        if not path.exists():
-            raise FileNotFoundError(f"no such file: {path}")
-        saved = path.parent / "config.toml"        # the experiment's own configuration
-        run_cfg = (load_config(saved, overrides_from_args(args))
-                   if args.config is None and saved.exists() else cfg)
-        runs = [r for r in read_runs(path)
-                if args.only is None or r["controller"] in args.only.split(",")]
+        path, run_cfg, runs = experiment_runs(args, given, cfg)
         try:
             earlier = load_saved(path.parent)      # the attributions of earlier reruns
         except ValueError as exc:

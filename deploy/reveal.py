@@ -63,11 +63,6 @@ def stopping_distance(cfg: Config, v: float) -> float:
     return d + v * ramp - a * ramp ** 2 / 6.0 + v1 * v1 / (2.0 * a)
 
 
-def surface_distance(ob: Obstacle, x: float, y: float) -> float:
-    """Distance from (x, y) to the obstacle's footprint (0 inside)."""
-    return float(ob.distance(x, y))
-
-
 def in_view(ob: Obstacle, x: float, y: float, yaw: float, reach: float, half_fov: float
             ) -> bool:
     """False only where the obstacle cannot be in the image: out of range or wholly outside
@@ -132,7 +127,7 @@ def first_sightings(cfg: Config, scn: Scenario, poses, which: list[int],
         for k in near:
             if returns_on(pts, scn.obstacles[k]) >= min_returns:
                 fx, fy = x + half * math.cos(yaw), y + half * math.sin(yaw)
-                found[k] = Sighting(k, t, surface_distance(scn.obstacles[k], fx, fy), v,
+                found[k] = Sighting(k, t, float(scn.obstacles[k].distance(fx, fy)), v,
                                     stopping_distance(cfg, v))
     return [found.get(k, Sighting(k, None, math.nan, math.nan, math.nan)) for k in which]
 
