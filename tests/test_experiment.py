@@ -56,8 +56,11 @@ def test_small_experiment_records_are_complete_and_resumable(tmp_path):
     other = run(out, 2, ["--no-plots", "--set", "planner.temperature=2.0"])
     assert other.returncode == 2 and "another configuration" in other.stderr
     assert read_runs(out / "runs.jsonl") == runs                  # nothing touched
-    table = (out / "summary.md").read_text().splitlines()
+    text = (out / "summary.md").read_text()
+    table = text.split("\n\n")[0].splitlines()          # then, if any run collided, what on
     assert len(table) == 2 + len(summary)
+    assert ("What the collisions were on" in text) == any(x["outcome"] == "collision"
+                                                          for x in runs)
     assert all(row.startswith("| alleyway | ") and row.count("|") == 12 for row in table[2:])
     for name in ("failures.png", "time_to_goal.png", "solve_time.png",
                  "trajectories_alleyway.png", "visibility_alleyway.png"):
