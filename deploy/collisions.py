@@ -27,9 +27,9 @@ from typing import Any
 import numpy as np
 
 from common.config import Config
-from deploy.experiment import KEY_FIELDS, config_digest
+from deploy.experiment import KEY_FIELDS, config_digest, run_one
 from deploy.reveal import stopping_distance
-from deploy.runner import Cores, run_episode
+from deploy.runner import Cores
 
 UNATTRIBUTED = "unattributed"
 NOT_REPRODUCED = "not reproduced"
@@ -90,17 +90,8 @@ def attribute(cfg: Config, runs: list[dict[str, Any]], rerun: bool = False,
             rows.append({**row, "status": NOT_REPRODUCED, "collision": None,
                          "why": f"config digest {r['config_digest']}, this one {digest}"})
             continue
-        run_cfg = cfg.replace(**{"episode.scenario": r["scenario"],
-                                 "planner.controller": r["controller"],
-                                 "planner.samples": r["samples"], "episode.seed": r["seed"],
-                                 "episode.scenario_seed": r.get("scenario_seed",
-                                                                cfg.episode.scenario_seed)})
-        key = (r["scenario"], r["controller"], r["samples"])
-        if key not in cores:
-            if len(cores) >= 8:          # the planner keeps 8 compiled solvers (mppi.solver)
-                cores.clear()
-            cores[key] = Cores.from_config(run_cfg)
-        res = run_episode(run_cfg, cores[key])
+        # the digest covers every parameter but the run's keys (the scenario's seed too)
+        _, res = run_one(cfg, tuple(r[k] for k in KEY_FIELDS), cores)
         if res.outcome != "collision" or abs(res.sim_time_s - r["sim_time_s"]) > 1e-6:
             rows.append({**row, "status": NOT_REPRODUCED, "collision": None,
                          "why": f"rerun: {res.outcome} at {res.sim_time_s:.2f} s, "

@@ -171,6 +171,21 @@ def markdown_table(summary: list[dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def run_one(cfg: Config, key: tuple, cores_cache: dict[tuple, Cores]) -> tuple[Config, Any]:
+    """One run of an experiment, `key` its (scenario, controller, samples, seed): its
+    configuration and its episode. The services' cores are kept in `cores_cache` per
+    (scenario, controller, samples), at most 8 (the planner keeps 8 compiled solvers,
+    mppi.solver)."""
+    scenario, controller, k, seed = key
+    run_cfg = cfg.replace(**{"episode.scenario": scenario, "planner.controller": controller,
+                             "planner.samples": k, "episode.seed": seed})
+    if key[:3] not in cores_cache:
+        if len(cores_cache) >= 8:
+            cores_cache.clear()
+        cores_cache[key[:3]] = Cores.from_config(run_cfg)
+    return run_cfg, run_episode(run_cfg, cores_cache[key[:3]])
+
+
 def collisions_section(cfg: Config, runs: list[dict[str, Any]], out: Path) -> str:
     """summary.md's second table, what each collision was on (deploy/collisions.py; records
     older than the `collision` field as `vamppi collisions DIR --rerun` left them); "" when
@@ -216,14 +231,7 @@ def experiment(cfg: Config, scenarios: list[str], controllers: list[str], sample
     cores_cache: dict[tuple, Cores] = {}
     bar = tqdm(todo, desc="experiment", unit="run", disable=not progress, dynamic_ncols=True)
     for scenario, controller, k, s in bar:
-        run_cfg = cfg.replace(**{"episode.scenario": scenario, "planner.controller": controller,
-                                 "planner.samples": k, "episode.seed": s})
-        ck = (scenario, controller, k)
-        if ck not in cores_cache:
-            if len(cores_cache) >= 8:    # the planner keeps 8 compiled solvers (mppi.solver)
-                cores_cache.clear()
-            cores_cache[ck] = Cores.from_config(run_cfg)
-        result = run_episode(run_cfg, cores_cache[ck])
+        run_cfg, result = run_one(cfg, (scenario, controller, k, s), cores_cache)
         _append(runs_path, run_record(run_cfg, result))
         bar.set_postfix_str(f"{scenario}/{controller}/{k}: {result.outcome}")
     all_runs = read_runs(runs_path)
