@@ -125,6 +125,7 @@ class PlannerConfig:
     footprint_arrays: int = _rng(2, 16)
     footprint_margin_m: float = _rng(0.0, 2.0)
     crash_variance: float = _rng(0.0)
+    surface_distance_m: float = _rng(0.0)
     w_time: float = _rng(0.0)
     w_dynamic: float = _rng(0.0)
     w_surface: float = _rng(0.0)

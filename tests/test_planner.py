@@ -166,6 +166,50 @@ def test_absorbing_crash_against_a_loop(rng):
     assert crash >= cp.w_surface * 5 * p * (n1 - first - 1) > 2 * plain > 0
 
 
+def test_surface_cost_per_metre_against_a_loop(rng):
+    """`surface_distance_m` > 0: step i's expected indicators weigh |V_i| dt / that length
+    (a float64 loop over random expectations and speeds); a rollout standing still on
+    fog pays nothing for it, where the paper's sum charges every step; a rollout that
+    stops before a wall pays less than one that drives on through it."""
+    ref_m = 0.5
+    cp = mppi.PlannerParams.from_config(
+        CFG.replace(**{"planner.surface_distance_m": ref_m})).cost
+    n1, p = PP.horizon + 1, P_POINTS
+    goal = jnp.asarray([60.0, 40.0, 0.0])
+    m = flat_map()
+    for _ in range(10):
+        states = np.zeros((n1, 6), np.float32)
+        states[:, S.V] = rng.uniform(-1.0, 10.0, n1)
+        states[:, S.X], states[:, S.Y] = 20.0, 40.0
+        expected = (rng.uniform(0, 5, (n1, p)) * (rng.uniform(size=(n1, p)) < 0.2)
+                    ).astype(np.float32)
+        xd = jnp.zeros((PP.horizon, 6), jnp.float32)
+        got = float(rollout_cost(cp, jnp.asarray(states), xd, goal, m, None,
+                                 expected=jnp.asarray(expected))[2])
+        want = cp.w_surface * sum(abs(float(states[i, S.V])) * PP.dt / ref_m
+                                  * float(np.sum(expected[i], dtype=np.float64))
+                                  for i in range(n1))
+        assert got == pytest.approx(want, rel=1e-5)
+
+    # standing on fog: the plain sum charges every step, per metre nothing
+    still = jnp.tile(jnp.asarray([0.0, 0, 0, 20.0, 40.0, 0.0], jnp.float32), (n1, 1))
+    fog = MapView(m.mean, jnp.full_like(m.variance, 3.0), m.origin, m.resolution)
+    fog_var = jnp.full((n1, 5 * p), 3.0, jnp.float32)
+    xd = jnp.zeros((PP.horizon, 6), jnp.float32)
+    assert float(rollout_cost(PP.cost, still, xd, goal, fog, fog_var)[2]) > 0.0
+    assert float(rollout_cost(cp, still, xd, goal, fog, fog_var)[2]) == 0.0
+
+    # a wall ahead: braking to a stop before it costs less than driving through it
+    x0 = jnp.asarray([6.0, 0, 0, 20.0, 40.0, 0.0], jnp.float32)
+    wall = MapView(m.mean.at[150:250, 175:177].set(2.0), m.variance, m.origin, m.resolution)
+    costs = {}
+    for name, force in (("on", 0.0), ("brake", -6000.0)):
+        u = jnp.tile(jnp.asarray([0.0, force], jnp.float32), (PP.horizon, 1))
+        states, _, xd = mppi.rollout(PP, x0, jnp.zeros(2), u)
+        costs[name] = float(rollout_cost(cp, states, xd, goal, wall, ZERO_VAR)[2])
+    assert costs["on"] > costs["brake"] >= 0.0
+
+
 def test_mppi_is_reproducible_and_moves_toward_the_goal():
     m = flat_map()
     goal = np.array([60.0, 40.0, 0.0])

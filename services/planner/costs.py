@@ -57,6 +57,7 @@ class CostParams:
     estimator: str                 # closed_form | monte_carlo
     samples: int                   # N_theta of the Monte-Carlo estimate
     crash_variance: float          # absorbing crash on cells known this well; 0 = off
+    surface_distance: float        # per-step surface weight V dt / this; 0 = off (plain sum)
 
     @classmethod
     def from_config(cls, cfg: Config) -> CostParams:
@@ -70,7 +71,7 @@ class CostParams:
                    float(np.sqrt(p.step_sq_threshold)), p.height_threshold_m, p.a_roll_mps2,
                    p.a_max_mps2, p.beta_max_rad, p.v_lat_max_mps,
                    tuple(map(tuple, fp.tolist())), p.footprint_points, p.surface_estimator,
-                   p.surface_samples, p.crash_variance)
+                   p.surface_samples, p.crash_variance, p.surface_distance_m)
 
 
 def exceed_prob(mean: Any, var: Any, threshold: Any) -> Any:
@@ -254,7 +255,12 @@ def rollout_cost(c: CostParams, states: Any, xdots: Any, goal: Any, m: MapView,
         rows, cols, outside = query_cells(c, m, states)
         expected = surface_expectation(c, m, rows, cols, outside, query_var,
                                        ground_now(m, states), key)
-    s_surf = c.w_surface * jnp.sum(absorbing_crash(c, expected, query_var))
+    per_step = absorbing_crash(c, expected, query_var)
+    if c.surface_distance > 0.0:
+        # a cell priced per metre crossed: a slower or stopped rollout does not pay again
+        # for every tenth of a second it spends on the same cells
+        per_step = per_step * (jnp.abs(V) * (c.dt / c.surface_distance))[:, None]
+    s_surf = c.w_surface * jnp.sum(per_step)
 
     d0 = d[0]
     phi = jax.nn.sigmoid(2.0 * (c.activation_distance_m - d0))
