@@ -111,7 +111,10 @@ def torch_cost(torch: Any, c: CostParams, states: Any, xdots: Any, goal: Any, me
             + (step_t.abs() > c.step_threshold).float()
             + (step_a.abs() > c.step_threshold).float()
             + ((hc - h0).abs() > c.height_threshold).float())
-    s_surf = c.w_surface * torch.where(outside, torch.full_like(hits, 5.0), hits).sum((1, 2))
+    per_step = torch.where(outside, torch.full_like(hits, 5.0), hits)
+    if c.surface_distance > 0.0:            # priced per metre crossed, as costs.rollout_cost
+        per_step = per_step * (V.abs() * (c.dt / c.surface_distance))[..., None]
+    s_surf = c.w_surface * per_step.sum((1, 2))
 
     d0 = d[:, 0]
     phi = torch.sigmoid(2.0 * (c.activation_distance_m - d0))
