@@ -32,7 +32,7 @@ import numpy as np
 
 from common.config import Config
 from services.planner import mppi
-from services.planner.costs import CostParams, MapView, rollout_cost
+from services.planner.costs import CostParams, MapView, per_metre_weight, rollout_cost
 from services.plant.dynamics import S, clamp_control, derivatives, integrate
 
 
@@ -113,7 +113,7 @@ def torch_cost(torch: Any, c: CostParams, states: Any, xdots: Any, goal: Any, me
             + ((hc - h0).abs() > c.height_threshold).float())
     per_step = torch.where(outside, torch.full_like(hits, 5.0), hits)
     if c.surface_distance > 0.0:            # priced per metre crossed, as costs.rollout_cost
-        per_step = per_step * (V.abs() * (c.dt / c.surface_distance))[..., None]
+        per_step = per_step * per_metre_weight(c, V, torch)[..., None]
     s_surf = c.w_surface * per_step.sum((1, 2))
 
     d0 = d[:, 0]

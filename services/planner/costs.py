@@ -220,6 +220,12 @@ def absorbing_crash(c: CostParams, expected: Any, query_var: Any) -> Any:
     return jnp.where(crashed[:, None], 5.0, expected)
 
 
+def per_metre_weight(c: CostParams, V: Any, xp: Any = jnp) -> Any:
+    """The weight of each step's expected surface indicators when `surface_distance` > 0:
+    the distance the vehicle covers in the step, |V| dt, over that length (docs/planner.md)."""
+    return xp.abs(V) * (c.dt / c.surface_distance)
+
+
 def ground_now(m: MapView, states: Any) -> Any:
     """x_0 of Eq. occupied: the mean elevation of the cell under the CG now (i = 0)."""
     h, w = m.mean.shape
@@ -259,7 +265,7 @@ def rollout_cost(c: CostParams, states: Any, xdots: Any, goal: Any, m: MapView,
     if c.surface_distance > 0.0:
         # a cell priced per metre crossed: a slower or stopped rollout does not pay again
         # for every tenth of a second it spends on the same cells
-        per_step = per_step * (jnp.abs(V) * (c.dt / c.surface_distance))[:, None]
+        per_step = per_step * per_metre_weight(c, V)[:, None]
     s_surf = c.w_surface * jnp.sum(per_step)
 
     d0 = d[0]
