@@ -72,6 +72,13 @@ def config_from_args(args: argparse.Namespace) -> Config:
     return load_config(getattr(args, "config", None), overrides_from_args(args))
 
 
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be 1 or more, not {value}")
+    return value
+
+
 def _setup_logging(verbose: bool) -> None:
     logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, stream=sys.stderr,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
@@ -176,13 +183,19 @@ def cmd_health(args: argparse.Namespace, cfg: Config) -> int:
 
 def cmd_experiment(args: argparse.Namespace, cfg: Config) -> int:
     from deploy.experiment import ExperimentError, experiment, parse_list
+    signal.signal(signal.SIGTERM, _interrupt)     # SIGTERM unwinds like Ctrl-C: workers stop
     try:
         summary = experiment(cfg, parse_list(args.scenarios), parse_list(args.controllers),
                              parse_list(args.samples_list, int), args.runs, args.seed_base,
-                             Path(args.out), plots=not args.no_plots, progress=not args.quiet)
+                             Path(args.out), plots=not args.no_plots, progress=not args.quiet,
+                             jobs=args.jobs)
     except ExperimentError as exc:
         print(f"vamppi experiment: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"vamppi experiment: interrupted; the finished runs are kept in "
+              f"{Path(args.out) / 'runs.jsonl'}, and the same command resumes", file=sys.stderr)
+        return 130
     for row in summary:
         print(json.dumps(row), flush=True)
     return 0
@@ -459,6 +472,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", dest="seed_base", type=int, default=0,
                    help="planner seed of the first run; run i uses seed + i")
     p.add_argument("--out", required=True, help="output directory (resumable)")
+    p.add_argument("--jobs", type=_positive_int, default=1,
+                   help="worker processes running runs side by side, each pinned to its "
+                        "share of the CPUs (default 1: in this process); solve times are "
+                        "then measured with the others competing")
     p.add_argument("--no-plots", action="store_true")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--config", help="TOML file merged over the defaults")

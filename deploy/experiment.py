@@ -21,6 +21,12 @@ Output directory:
   summary.md     the same as a markdown table, the paper's figures beside ours; then
                  what each collision was on (deploy/collisions.py)
   *.png          the plots of `deploy.plots`
+
+With `jobs` > 1 the runs are spread over that many worker processes (each its own
+JAX runtime and cores, pinned to its share of this process's CPUs when there are
+enough); this process alone writes runs.jsonl, a record as each run ends. A run's
+record does not depend on which process ran it (tested), except its solve and wall
+times, which are then measured with the other workers competing for the machine.
 """
 
 from __future__ import annotations
@@ -28,8 +34,12 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import multiprocessing
 import os
-from collections.abc import Iterable
+import signal
+import threading
+import time
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -203,10 +213,69 @@ def collisions_section(cfg: Config, runs: list[dict[str, Any]], out: Path) -> st
             + collisions.table(rows) + "\n")
 
 
+def _records_serial(cfg: Config, todo: list[tuple]) -> Iterator[dict[str, Any]]:
+    cores_cache: dict[tuple, Cores] = {}
+    for key in todo:
+        yield run_record(*run_one(cfg, key, cores_cache))
+
+
+# a worker process's own state (`_worker_init`): the configuration and its cores cache
+_WORKER: dict[str, Any] = {}
+
+
+def cpu_shares(jobs: int) -> list[list[int]] | None:
+    """The CPUs this process may run on, dealt into `jobs` disjoint shares; None where
+    there are fewer CPUs than jobs or the platform cannot pin processes."""
+    try:
+        cpus = sorted(os.sched_getaffinity(0))
+    except AttributeError:
+        return None
+    return [cpus[i::jobs] for i in range(jobs)] if jobs <= len(cpus) else None
+
+
+def _worker_init(cfg: Config, shares: list[list[int]] | None, counter: Any, parent: int) -> None:
+    from common import compile_cache
+    # Ctrl-C is the parent's to handle: it stops the workers (`_records_parallel`)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+    def exit_when_orphaned() -> None:          # the parent killed outright: nothing to keep
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=exit_when_orphaned, daemon=True, name="parent-watch").start()
+    with counter.get_lock():
+        index = counter.value
+        counter.value += 1
+    if shares:
+        # the native kernels' threads (planner.va_threads = 0) and XLA's follow the pinning
+        os.sched_setaffinity(0, shares[index % len(shares)])
+    compile_cache.enable()
+    _WORKER.update(cfg=cfg, cores={})
+
+
+def _worker_run(key: tuple) -> dict[str, Any]:
+    return run_record(*run_one(_WORKER["cfg"], key, _WORKER["cores"]))
+
+
+def _records_parallel(cfg: Config, todo: list[tuple], jobs: int) -> Iterator[dict[str, Any]]:
+    """The records of `todo` as `jobs` worker processes finish them (each takes the next
+    run in `todo`'s order). Stopped early (an interrupt, an error), the workers are
+    killed: a run not finished has nothing to keep."""
+    ctx = multiprocessing.get_context("spawn")       # a fresh JAX runtime per worker
+    pool = ctx.Pool(jobs, _worker_init, (cfg, cpu_shares(jobs), ctx.Value("i", 0), os.getpid()))
+    try:
+        yield from pool.imap_unordered(_worker_run, todo)
+    finally:
+        pool.terminate()
+        pool.join()
+
+
 def experiment(cfg: Config, scenarios: list[str], controllers: list[str], samples: list[int],
                runs: int, seed: int, out: Path, plots: bool = True,
-               progress: bool = True) -> list[dict[str, Any]]:
-    """Run what is missing from `out/runs.jsonl`, then write the summary and plots."""
+               progress: bool = True, jobs: int = 1) -> list[dict[str, Any]]:
+    """Run what is missing from `out/runs.jsonl` (in `jobs` worker processes when more
+    than 1), then write the summary and plots."""
     out.mkdir(parents=True, exist_ok=True)
     runs_path = out / "runs.jsonl"
     existing = read_runs(runs_path)
@@ -228,12 +297,15 @@ def experiment(cfg: Config, scenarios: list[str], controllers: list[str], sample
     todo = [(s, c, k, seed + i) for i in range(runs) for s in scenarios for c in controllers
             for k in samples if (s, c, k, seed + i) not in done]
     log.info("%d run(s) to do, %d already in %s", len(todo), len(done), runs_path)
-    cores_cache: dict[tuple, Cores] = {}
-    bar = tqdm(todo, desc="experiment", unit="run", disable=not progress, dynamic_ncols=True)
-    for scenario, controller, k, s in bar:
-        run_cfg, result = run_one(cfg, (scenario, controller, k, s), cores_cache)
-        _append(runs_path, run_record(run_cfg, result))
-        bar.set_postfix_str(f"{scenario}/{controller}/{k}: {result.outcome}")
+    records = _records_serial(cfg, todo) if jobs <= 1 or len(todo) <= 1 else \
+        _records_parallel(cfg, todo, jobs)
+    with tqdm(total=len(todo), desc="experiment", unit="run", disable=not progress,
+              dynamic_ncols=True) as bar:
+        for rec in records:
+            _append(runs_path, rec)
+            bar.update()
+            bar.set_postfix_str(f"{rec['scenario']}/{rec['controller']}/{rec['samples']}: "
+                                f"{rec['outcome']}")
     all_runs = read_runs(runs_path)
     summary = summarize(all_runs)
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")

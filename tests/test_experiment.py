@@ -1,11 +1,12 @@
 """A small lockstep experiment: records complete and valid, resumable, plots written."""
 
 import json
+import os
 import subprocess
 import sys
 
 from common.config import load_config
-from deploy.experiment import KEY_FIELDS, config_digest, read_runs, summarize
+from deploy.experiment import KEY_FIELDS, config_digest, cpu_shares, read_runs, summarize
 from services.plant.core import OUTCOMES
 
 SETTINGS = ["--set", "episode.timeout_s=1.5", "--set", "planner.horizon=40"]
@@ -65,3 +66,31 @@ def test_small_experiment_records_are_complete_and_resumable(tmp_path):
     for name in ("failures.png", "time_to_goal.png", "solve_time.png",
                  "trajectories_alleyway.png", "visibility_alleyway.png"):
         assert (out / name).stat().st_size > 10_000, name
+
+
+def test_worker_processes_give_the_records_of_one_process(tmp_path):
+    """--jobs 2: the runs spread over two pinned worker processes, the parent writing their
+    records, are the in-process runs bit for bit (all but the solve and wall times)."""
+    serial, parallel = tmp_path / "serial", tmp_path / "parallel"
+    for out, extra in ((serial, []), (parallel, ["--jobs", "2"])):
+        r = run(out, 2, ["--no-plots", *extra])
+        assert r.returncode == 0, r.stderr[-2000:]
+
+    def records(out):
+        return {tuple(x[k] for k in KEY_FIELDS):
+                {k: v for k, v in x.items() if k not in ("solve_ms", "wall_time_s")}
+                for x in read_runs(out / "runs.jsonl")}
+
+    a, b = records(serial), records(parallel)
+    assert len(a) == 6 and a == b
+    assert (parallel / "summary.json").read_text() == (serial / "summary.json").read_text()
+    assert run(tmp_path / "x", 1, ["--jobs", "0"]).returncode == 2
+
+
+def test_cpu_shares_are_disjoint_and_cover_the_cpus():
+    cpus = sorted(os.sched_getaffinity(0))
+    for jobs in range(1, len(cpus) + 1):
+        shares = cpu_shares(jobs)
+        assert len(shares) == jobs and all(shares)
+        assert sorted(c for share in shares for c in share) == cpus
+    assert cpu_shares(len(cpus) + 1) is None
