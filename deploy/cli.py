@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
 import signal
 import sys
 import threading
@@ -29,6 +28,7 @@ from typing import Any
 from common import compile_cache
 from common.config import Config, ConfigError, load_config
 from common.memory import keep_large_buffers
+from common.process import when_orphaned
 
 
 def add_config_args(p: argparse.ArgumentParser) -> None:
@@ -93,19 +93,6 @@ SERVICE_MAINS = {
 }
 
 
-def _stop_when_orphaned(stop: threading.Event) -> None:
-    """Set `stop` if the parent process goes away (a launcher killed with SIGKILL)."""
-    parent = os.getppid()
-
-    def watch() -> None:
-        while not stop.wait(0.5):
-            if os.getppid() != parent:
-                logging.getLogger(__name__).warning("parent process gone: stopping")
-                stop.set()
-
-    threading.Thread(target=watch, daemon=True, name="parent-watch").start()
-
-
 def cmd_service(args: argparse.Namespace, cfg: Config) -> int:
     import importlib
     module = importlib.import_module(SERVICE_MAINS[args.name])
@@ -113,7 +100,10 @@ def cmd_service(args: argparse.Namespace, cfg: Config) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     if args.stop_with_parent:
-        _stop_when_orphaned(stop)
+        def parent_gone() -> None:
+            logging.getLogger(__name__).warning("parent process gone: stopping")
+            stop.set()
+        when_orphaned(parent_gone)
     module.main(cfg, args.instance, stop)
     return 0
 

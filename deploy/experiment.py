@@ -37,8 +37,6 @@ import logging
 import multiprocessing
 import os
 import signal
-import threading
-import time
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
@@ -47,6 +45,7 @@ import numpy as np
 from tqdm import tqdm
 
 from common.config import Config, config_toml
+from common.process import when_orphaned
 from deploy.runner import Cores, run_episode
 from services.plant.core import OUTCOMES
 
@@ -233,17 +232,11 @@ def cpu_shares(jobs: int) -> list[list[int]] | None:
     return [cpus[i::jobs] for i in range(jobs)] if jobs <= len(cpus) else None
 
 
-def _worker_init(cfg: Config, shares: list[list[int]] | None, counter: Any, parent: int) -> None:
+def _worker_init(cfg: Config, shares: list[list[int]] | None, counter: Any) -> None:
     from common import compile_cache
     # Ctrl-C is the parent's to handle: it stops the workers (`_records_parallel`)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-    def exit_when_orphaned() -> None:          # the parent killed outright: nothing to keep
-        while os.getppid() == parent:
-            time.sleep(0.5)
-        os._exit(1)
-
-    threading.Thread(target=exit_when_orphaned, daemon=True, name="parent-watch").start()
+    when_orphaned(lambda: os._exit(1))         # the parent killed outright: nothing to keep
     with counter.get_lock():
         index = counter.value
         counter.value += 1
@@ -263,7 +256,7 @@ def _records_parallel(cfg: Config, todo: list[tuple], jobs: int) -> Iterator[dic
     run in `todo`'s order). Stopped early (an interrupt, an error), the workers are
     killed: a run not finished has nothing to keep."""
     ctx = multiprocessing.get_context("spawn")       # a fresh JAX runtime per worker
-    pool = ctx.Pool(jobs, _worker_init, (cfg, cpu_shares(jobs), ctx.Value("i", 0), os.getpid()))
+    pool = ctx.Pool(jobs, _worker_init, (cfg, cpu_shares(jobs), ctx.Value("i", 0)))
     try:
         yield from pool.imap_unordered(_worker_run, todo)
     finally:

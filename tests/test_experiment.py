@@ -2,8 +2,12 @@
 
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
+
+import pytest
 
 from common.config import load_config
 from deploy.experiment import KEY_FIELDS, config_digest, cpu_shares, read_runs, summarize
@@ -94,3 +98,51 @@ def test_cpu_shares_are_disjoint_and_cover_the_cpus():
         assert len(shares) == jobs and all(shares)
         assert sorted(c for share in shares for c in share) == cpus
     assert cpu_shares(len(cpus) + 1) is None
+
+
+def _children(pid):
+    out = subprocess.run(["pgrep", "-P", str(pid)], capture_output=True, text=True).stdout
+    return [int(x) for x in out.split()]
+
+
+def _alive(pid):
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+# SIGKILL: runs long enough (VA-MPPI at K = 16 stands still until a 60 s timeout, about 12 s
+# of wall time) that a worker left to finish its run would outlive the deadline below
+@pytest.mark.parametrize("sig, controllers, timeout_s", [(signal.SIGTERM, "va,deterministic", 1.5),
+                                                         (signal.SIGKILL, "va", 60.0)])
+def test_a_stopped_experiment_stops_its_workers_and_keeps_its_runs(tmp_path, sig, controllers,
+                                                                   timeout_s):
+    out = tmp_path / "exp"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "deploy.cli", "experiment", "--scenario", "alleyway",
+         "--controllers", controllers, "--samples", "16", "--runs", "50", "--seed", "3",
+         "--out", str(out), "--quiet", "--no-plots", "--jobs", "2",
+         "--set", f"episode.timeout_s={timeout_s}"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 300
+        while not read_runs(out / "runs.jsonl"):                # the workers are at work
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
+            time.sleep(0.1)
+        workers = _children(proc.pid)
+        assert len(workers) >= 2
+        proc.send_signal(sig)
+        proc.wait(timeout=60)
+        deadline = time.monotonic() + 3                # SIGKILL: the workers notice at once
+        while any(_alive(w) for w in workers):
+            assert time.monotonic() < deadline, [w for w in workers if _alive(w)]
+            time.sleep(0.1)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    if sig == signal.SIGTERM:                          # unwinds as Ctrl-C does
+        assert proc.returncode == 130 and "interrupted" in err, err[-2000:]
+    kept = read_runs(out / "runs.jsonl")
+    assert 1 <= len(kept) < 100 and all(x["outcome"] in OUTCOMES for x in kept)
