@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import threading
+import time
 from collections.abc import Callable
 
 
@@ -14,7 +15,7 @@ def when_orphaned(action: Callable[[], None], poll_s: float = 0.5) -> None:
 
     def watch() -> None:
         while os.getppid() == parent:
-            threading.Event().wait(poll_s)
+            time.sleep(poll_s)
         action()
 
     threading.Thread(target=watch, daemon=True, name="parent-watch").start()
