@@ -42,7 +42,7 @@ def _key(r: dict[str, Any]) -> tuple:
 
 def room_to_stop(cfg: Config, path: Any, c: dict[str, Any]) -> dict[str, Any] | None:
     """From the moment the map showed the last of the collision's obstacles to the collision:
-    the distance travelled along the recorded 10 Hz path (t, X, Y, V), the speed then, and
+    the distance travelled along the recorded 10 Hz path (t, X, Y, V[, psi]), the speed then, and
     the distance needed to stop from that speed (`deploy.reveal.stopping_distance`: one
     control tick, the brake ramp, full braking). None where an obstacle was never shown or
     the collision is off the map only."""
@@ -50,7 +50,7 @@ def room_to_stop(cfg: Config, path: Any, c: dict[str, Any]) -> dict[str, Any] | 
     if not shown or any(s is None for s in shown):
         return None
     t_m = max(shown)
-    p = np.asarray(path, float)
+    p = np.asarray(path, float)[:, :4]                   # (t, X, Y, V), with or without psi
     p = np.vstack([p[p[:, 0] < c["t_s"] - 1e-9], [c["t_s"], c["x"], c["y"], c["speed_mps"]]])
     at = [float(np.interp(t_m, p[:, 0], p[:, k])) for k in (1, 2, 3)]
     later = p[p[:, 0] > t_m]

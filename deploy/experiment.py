@@ -6,7 +6,8 @@ seeds `seed, seed + 1, ...` on the same scenario (its terrain fixed by
 `deploy.runner`.
 
 Output directory:
-  runs.jsonl     one record per finished run (outcome, time to goal, 10 Hz path,
+  runs.jsonl     one record per finished run (outcome, time to goal, 10 Hz path
+                 (t, X, Y, V, heading),
                  solve times; a collision's obstacles and when the map first showed
                  them: deploy/collisions.py), appended and fsynced as each ends:
                  an interrupted experiment keeps its finished runs and resumes
@@ -48,6 +49,7 @@ from common.config import Config, config_toml
 from common.process import when_orphaned
 from deploy.runner import Cores, run_episode
 from services.plant.core import OUTCOMES
+from services.plant.dynamics import S
 
 log = logging.getLogger(__name__)
 
@@ -72,10 +74,11 @@ def config_digest(cfg: Config) -> str:
 
 
 def run_record(cfg: Config, result) -> dict[str, Any]:
-    """One run's record: the summary, its 10 Hz path (t, X, Y, V) and solve times."""
-    traj = result.trajectory
+    """One run's record: the summary, its 10 Hz path (t, X, Y, V, psi) and solve times.
+    Records before session 26 have no psi column."""
+    traj = result.trajectory                     # rows (t, state): S.V, S.X, S.Y, S.PSI at 1 + S.*
     every = max(1, int(round(cfg.plant.rate_hz * cfg.planner.dt_s)))
-    path = traj[::every][:, [0, 4, 5, 1]]
+    path = traj[::every][:, [0, 1 + S.X, 1 + S.Y, 1 + S.V, 1 + S.PSI]]
     speed = np.hypot(traj[:, 1], traj[:, 2])
     rec = result.summary(cfg)
     rec.update(path=np.round(path, 3).tolist(), max_speed_mps=round(float(speed.max()), 3),

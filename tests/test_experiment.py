@@ -43,7 +43,7 @@ def test_small_experiment_records_are_complete_and_resumable(tmp_path):
     for x in runs:
         assert x["outcome"] in OUTCOMES
         assert x["sim_time_s"] <= 1.5 + 1e-9
-        assert len(x["path"]) >= 10 and len(x["path"][0]) == 4
+        assert len(x["path"]) >= 10 and len(x["path"][0]) == 5       # t, X, Y, V, psi
         assert len(x["solve_ms"]) >= 10 and x["max_speed_mps"] >= 0
         assert ("collision" in x) == (x["outcome"] == "collision")
     summary = json.loads((out / "summary.json").read_text())
