@@ -14,12 +14,13 @@ The camera, the vehicle and the control period are the experiment's own
 (`DIR/config.toml`, which the experiment writes; `--config` or an older
 directory without it: the given configuration).
 
-The path of a run record is 10 Hz (t, X, Y, V, psi), the camera's heading psi
-recorded since session 26. An older record has no psi: its heading at sample i
-is then the direction from sample i-1 to i, which is the course, not where the
-camera points, and a vehicle sliding in a turn moves 10-20 degrees off its
-heading (docs/results.md, session 26). Samples below 0.2 m/s are skipped:
-standing still, the course is undefined.
+The path of a run record is 10 Hz (t, X, Y, V, psi), the vehicle's (and the
+camera's) heading psi recorded since session 26; every sample is a pose, a
+repeat of the one before only once. An older record has no psi: its heading at
+sample i is then the direction from sample i-1 to i, the course, not where the
+camera points (a vehicle sliding in a turn moved 11-16 degrees off its heading:
+docs/results.md, session 26), and samples below 0.2 m/s are skipped (standing
+still, the course is undefined).
 """
 
 from __future__ import annotations
@@ -101,15 +102,25 @@ def seen_from(cam: sensor.CameraParams, scn: Scenario, x: float, y: float, yaw: 
 
 
 def poses_of_path(path: np.ndarray) -> list[tuple[float, float, float, float, float]]:
-    """(t, x, y, yaw, v) of a (T, 5) path (t, X, Y, V, psi); of an older (T, 4) one
-    without psi, the yaw is the course from the previous sample."""
-    out = []
-    for i in range(1, len(path)):
+    """(t, x, y, yaw, v) of a (T, 5) path (t, X, Y, V, psi), a pose repeated only once;
+    of an older (T, 4) one without psi, the yaw is the course from the previous sample
+    and standing samples are skipped."""
+    out: list[tuple[float, float, float, float, float]] = []
+    for i in range(len(path)):
         t, x, y, v = (float(a) for a in path[i][:4])
-        dx, dy = x - path[i - 1][1], y - path[i - 1][2]
-        if v >= MIN_SPEED_MPS and math.hypot(dx, dy) > 1e-6:
-            yaw = float(path[i][4]) if len(path[i]) > 4 else math.atan2(dy, dx)
-            out.append((t, x, y, yaw, v))
+        if len(path[i]) > 4:                                   # the recorded heading
+            yaw = float(path[i][4])
+            if out and math.hypot(x - out[-1][1], y - out[-1][2]) <= 1e-6 \
+                    and abs(yaw - out[-1][3]) <= 1e-6:
+                continue                                       # the same view again
+        else:                                                  # older records: the course
+            if i == 0:
+                continue
+            dx, dy = x - path[i - 1][1], y - path[i - 1][2]
+            if v < MIN_SPEED_MPS or math.hypot(dx, dy) <= 1e-6:
+                continue
+            yaw = math.atan2(dy, dx)
+        out.append((t, x, y, yaw, v))
     return out
 
 

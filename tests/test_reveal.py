@@ -52,9 +52,11 @@ def test_poses_of_a_path_take_the_heading_from_consecutive_samples():
     poses = poses_of_path(path)
     assert [p[0] for p in poses] == [0.2, 0.3]                  # standing still: skipped
     assert poses[0][3] == pytest.approx(math.pi / 4) and poses[1][3] == pytest.approx(math.pi / 2)
-    # a record with the heading: the camera points where the vehicle does, not where it slides
+    # a record with the heading: the camera points where the vehicle does, not where it
+    # slides, and standing still it still looks (the same view once)
     with_psi = np.hstack([path, np.array([[0.0], [0.0], [0.3], [1.2]])])
-    assert [p[3] for p in poses_of_path(with_psi)] == [0.3, 1.2]
+    assert [(p[0], p[3]) for p in poses_of_path(with_psi)] == [(0.0, 0.0), (0.2, 0.3),
+                                                               (0.3, 1.2)]
 
 
 def test_cli_reports_runs_and_skips_a_torn_line(tmp_path):
