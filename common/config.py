@@ -33,6 +33,7 @@ class EpisodeConfig:
     scenario: str = _rng(choices=("open-field", "alleyway", "offroad"))
     seed: int = _rng(0)
     scenario_seed: int = _rng(0)
+    layout: int = _rng(0)
     clock: str = _rng(choices=("lockstep", "realtime"))
     vehicle: str = _rng()
     timeout_s: float = _rng(0.0, lo_open=True)
@@ -290,6 +291,11 @@ def config_from_dict(data: dict[str, dict[str, Any]]) -> Config:
 
 
 def _check_cross(cfg: Config) -> None:
+    from common.scenarios import resolve_layout
+    try:
+        resolve_layout(cfg.episode.scenario, cfg.episode.layout)
+    except ValueError as exc:
+        raise ConfigError(f"episode.layout: {exc}") from None
     v, p = cfg.vehicle, cfg.planner
     if v.dynamic_above_mps <= v.kinematic_below_mps:
         raise ConfigError("vehicle.dynamic_above_mps must exceed vehicle.kinematic_below_mps")

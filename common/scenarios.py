@@ -73,6 +73,7 @@ class Scenario:
     goal: Pose2
     obstacles: tuple[Obstacle, ...]
     description: str
+    layout: int = 1           # which of the scenario's layouts (LAYOUTS) it was built to
 
     def obstacle_mask(self, min_height: float) -> np.ndarray:
         """Cells whose ground truth stands `min_height` or more above the bare terrain."""
@@ -121,7 +122,7 @@ def _render(terrain: np.ndarray, res: float, obstacles: tuple[Obstacle, ...]) ->
     return (terrain + extra).astype(np.float32)
 
 
-def _open_field(rng: np.random.Generator) -> tuple[Pose2, Pose2, list[Obstacle], str]:
+def _open_field(rng: np.random.Generator, layout: int) -> tuple[Pose2, Pose2, list[Obstacle], str]:
     obstacles = [Obstacle("cylinder", 33.0, 47.0, 1.5, radius=1.2),
                  Obstacle("cylinder", 42.0, 32.0, 1.5, radius=1.5),
                  Obstacle("box", 60.0, 52.0, 2.0, half_x=2.0, half_y=1.0, yaw=0.4)]
@@ -129,7 +130,7 @@ def _open_field(rng: np.random.Generator) -> tuple[Pose2, Pose2, list[Obstacle],
             "Rolling field, a 40 m straight run with rocks beside the line: a smoke test.")
 
 
-def _alleyway(rng: np.random.Generator) -> tuple[Pose2, Pose2, list[Obstacle], str]:
+def _alleyway(rng: np.random.Generator, layout: int) -> tuple[Pose2, Pose2, list[Obstacle], str]:
     walls = [Obstacle("box", 40.0, 32.0, 3.0, half_x=32.0, half_y=1.0),
              Obstacle("box", 40.0, 48.0, 3.0, half_x=32.0, half_y=1.0)]
     central = [Obstacle("box", 36.0, 40.0, 2.5, half_x=2.5, half_y=3.5)]
@@ -143,11 +144,15 @@ def _alleyway(rng: np.random.Generator) -> tuple[Pose2, Pose2, list[Obstacle], s
             "and hides one obstacle behind each of its sides.")
 
 
-def _offroad(rng: np.random.Generator) -> tuple[Pose2, Pose2, list[Obstacle], str]:
+def _offroad(rng: np.random.Generator, layout: int) -> tuple[Pose2, Pose2, list[Obstacle], str]:
     trees = [Obstacle("cylinder", x, 25.0, 5.0, radius=0.9) for x in np.arange(6.0, 56.0, 2.2)]
     # rocks in the open past the row's end, seen as the vehicle starts its turn there:
-    # they leave a gap (x 55.8-58.2) beside the last tree, the short way in ...
-    rocks = [Obstacle("cylinder", x, 33.0, 2.0, radius=1.3) for x in (59.5, 62.0, 64.5)]
+    # they leave a gap (x 55.8-58.2) beside the last tree, the short way in ... Layout 2
+    # (session 27) has them 2 m further north, so the gap is wider and a vehicle that
+    # takes it turns left with the first hidden obstacle on the inside of its turn,
+    # outside the camera's view (docs/scenarios.md)
+    rocks_y = {1: 33.0, 2: 35.0}[layout]
+    rocks = [Obstacle("cylinder", x, rocks_y, 2.0, radius=1.3) for x in (59.5, 62.0, 64.5)]
     # ... which two obstacles behind the trees close: invisible from the road and the
     # start of the turn, seen only once the vehicle faces the gap (about 8 m off);
     # the way in is round the rocks
@@ -161,21 +166,37 @@ def _offroad(rng: np.random.Generator) -> tuple[Pose2, Pose2, list[Obstacle], st
 
 _BUILDERS = {"open-field": _open_field, "alleyway": _alleyway, "offroad": _offroad}
 SCENARIOS = tuple(_BUILDERS)
+# the newest layout of each scenario; older ones stay buildable, so the records of runs
+# on them (which carry their layout; records without one ran on layout 1) can be
+# replayed, attributed and plotted (docs/scenarios.md lists what each changed)
+LAYOUTS = {"open-field": 1, "alleyway": 1, "offroad": 2}
+
+
+def resolve_layout(name: str, layout: int = 0) -> int:
+    """The layout number `layout` asks of scenario `name`: 0 is the newest."""
+    if name not in _BUILDERS:
+        raise ValueError(f"unknown scenario {name!r}; choose one of {', '.join(SCENARIOS)}")
+    if layout == 0:
+        return LAYOUTS[name]
+    if not 1 <= layout <= LAYOUTS[name]:
+        raise ValueError(f"scenario {name!r} has layouts 1-{LAYOUTS[name]} (0 = the newest), "
+                         f"not {layout}")
+    return layout
 
 
 def build_scenario(name: str, seed: int = 0, resolution: float = 0.2,
-                   size_m: float = SIZE_M) -> Scenario:
-    if name not in _BUILDERS:
-        raise ValueError(f"unknown scenario {name!r}; choose one of {', '.join(SCENARIOS)}")
+                   size_m: float = SIZE_M, layout: int = 0) -> Scenario:
+    layout = resolve_layout(name, layout)
     n = int(round(size_m / resolution))
     rng = np.random.default_rng([seed, sum(map(ord, name))])
     terrain = _terrain(rng, n, resolution, amplitude=0.25)
-    start, goal, obstacles, description = _BUILDERS[name](rng)
+    start, goal, obstacles, description = _BUILDERS[name](rng, layout)
     obs = tuple(obstacles)
     return Scenario(name, seed, resolution, (0.0, 0.0), terrain, _render(terrain, resolution, obs),
-                    start, goal, obs, description)
+                    start, goal, obs, description, layout)
 
 
 def scenario_of(cfg) -> Scenario:
     """The scenario a configuration names (every service builds the same one)."""
-    return build_scenario(cfg.episode.scenario, cfg.episode.scenario_seed, cfg.mapper.resolution_m)
+    return build_scenario(cfg.episode.scenario, cfg.episode.scenario_seed, cfg.mapper.resolution_m,
+                          layout=cfg.episode.layout)

@@ -121,7 +121,8 @@ def cmd_scenario(args: argparse.Namespace, cfg: Config) -> int:
 
     from common.scenarios import scenario_of
     scn = scenario_of(cfg)
-    print(json.dumps({"name": scn.name, "seed": scn.seed, "description": scn.description,
+    print(json.dumps({"name": scn.name, "seed": scn.seed, "layout": scn.layout,
+                      "description": scn.description,
                       "start": asdict(scn.start), "goal": asdict(scn.goal),
                       "obstacles": [asdict(o) for o in scn.obstacles]}, indent=1))
     if args.plot:

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from common.config import Config
-from deploy.experiment import KEY_FIELDS, config_digest, run_one
+from deploy.experiment import KEY_FIELDS, config_digest, run_layout, run_one
 from deploy.reveal import stopping_distance
 from deploy.runner import Cores
 
@@ -71,7 +71,7 @@ def attribute(cfg: Config, runs: list[dict[str, Any]], rerun: bool = False,
     from tqdm import tqdm
     collided = [r for r in runs if r["outcome"] == "collision"]
     earlier = {_key(s): s for s in saved if s.get("status") == "rerun"}
-    cores: dict[tuple, Cores] = {}
+    cores: dict[int, dict[tuple, Cores]] = {}          # per scenario layout
     digest = config_digest(cfg)
     rows = []
     for r in tqdm(collided, desc="collisions", unit="run", disable=not progress):
@@ -91,7 +91,9 @@ def attribute(cfg: Config, runs: list[dict[str, Any]], rerun: bool = False,
                          "why": f"config digest {r['config_digest']}, this one {digest}"})
             continue
         # the digest covers every parameter but the run's keys (the scenario's seed too)
-        _, res = run_one(cfg, tuple(r[k] for k in KEY_FIELDS), cores)
+        layout = run_layout(r)
+        _, res = run_one(cfg.replace(**{"episode.layout": layout}),
+                         tuple(r[k] for k in KEY_FIELDS), cores.setdefault(layout, {}))
         if res.outcome != "collision" or abs(res.sim_time_s - r["sim_time_s"]) > 1e-6:
             rows.append({**row, "status": NOT_REPRODUCED, "collision": None,
                          "why": f"rerun: {res.outcome} at {res.sim_time_s:.2f} s, "

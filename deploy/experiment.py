@@ -47,6 +47,7 @@ from tqdm import tqdm
 
 from common.config import Config, config_toml
 from common.process import when_orphaned
+from common.scenarios import resolve_layout
 from deploy.runner import Cores, run_episode
 from services.plant.core import OUTCOMES
 from services.plant.dynamics import S
@@ -63,19 +64,27 @@ class ExperimentError(ValueError):
 def config_digest(cfg: Config) -> str:
     """Digest of every parameter that shapes a run except the per-run keys (scenario,
     controller, samples, seed); the bus and the clock do not matter in-process. The
-    runs of one output directory must share it."""
+    runs of one output directory must share it. The scenario's layout is not in it (it
+    came after the digest): each record carries its own (`run_layout`)."""
     d = cfg.to_dict()
     d.pop("bus", None)
     for section, key in (("episode", "scenario"), ("episode", "seed"), ("episode", "clock"),
+                         ("episode", "layout"),
                          ("episode", "vehicle"), ("planner", "controller"),
                          ("planner", "samples")):
         d[section].pop(key, None)
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
+def run_layout(r: dict[str, Any]) -> int:
+    """The scenario layout a record ran on: records before session 27 carry none, and
+    ran on layout 1 (common/scenarios.py LAYOUTS)."""
+    return int(r.get("layout", 1))
+
+
 def run_record(cfg: Config, result) -> dict[str, Any]:
     """One run's record: the summary, its 10 Hz path (t, X, Y, V, psi) and solve times.
-    Records before session 26 have no psi column."""
+    Records before session 26 have no psi column, before session 27 no layout."""
     traj = result.trajectory                     # rows (t, state): S.V, S.X, S.Y, S.PSI at 1 + S.*
     every = max(1, int(round(cfg.plant.rate_hz * cfg.planner.dt_s)))
     path = traj[::every][:, [0, 1 + S.X, 1 + S.Y, 1 + S.V, 1 + S.PSI]]
@@ -83,7 +92,9 @@ def run_record(cfg: Config, result) -> dict[str, Any]:
     rec = result.summary(cfg)
     rec.update(path=np.round(path, 3).tolist(), max_speed_mps=round(float(speed.max()), 3),
                solve_ms=[round(x, 2) for x in result.solve_ms],
-               scenario_seed=cfg.episode.scenario_seed, config_digest=config_digest(cfg))
+               scenario_seed=cfg.episode.scenario_seed,
+               layout=resolve_layout(cfg.episode.scenario, cfg.episode.layout),
+               config_digest=config_digest(cfg))
     if result.collision is not None:
         rec["collision"] = result.collision
     return rec
@@ -284,6 +295,13 @@ def experiment(cfg: Config, scenarios: list[str], controllers: list[str], sample
     if any("config_digest" not in r for r in existing):
         log.warning("%s: runs without a config digest (older records) are taken as this "
                     "configuration's", runs_path)
+    for r in existing:
+        want = resolve_layout(r["scenario"], cfg.episode.layout)
+        if run_layout(r) != want:
+            raise ExperimentError(
+                f"{runs_path} holds {r['scenario']} runs on its layout {run_layout(r)}, this "
+                f"experiment would run layout {want}: resume with --set "
+                f"episode.layout={run_layout(r)}, or write to a new --out")
     # the configuration beside its runs: `--config DIR/config.toml` resumes it, and
     # `vamppi reveal DIR` reads it
     (out / "config.toml").write_text(config_toml(cfg))

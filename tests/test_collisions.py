@@ -42,7 +42,8 @@ def test_an_obstacle_is_mapped_once_one_of_its_cells_is_observed_standing():
 def test_collision_record_names_the_obstacle_and_how_long_it_was_mapped():
     cores = Cores.from_config(load_config(overrides=["episode.scenario=offroad"]))
     obs = cores.scenario.obstacles
-    rock = min((i for i, o in enumerate(obs) if o.y == 33.0), key=lambda i: obs[i].x)
+    rock = min((i for i, o in enumerate(obs) if o.radius == 1.3 and not o.hidden),
+               key=lambda i: obs[i].x)
     x = np.zeros(6)
     x[S.X], x[S.Y], x[S.PSI], x[S.V] = obs[rock].x, obs[rock].y - 2.5, np.pi / 2, 5.0
     hidden = [i for i, o in enumerate(obs) if o.hidden]

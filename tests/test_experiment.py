@@ -10,7 +10,8 @@ import time
 import pytest
 
 from common.config import load_config
-from deploy.experiment import KEY_FIELDS, config_digest, cpu_shares, read_runs, summarize
+from deploy.experiment import (KEY_FIELDS, ExperimentError, config_digest, cpu_shares,
+                               experiment, read_runs, summarize)
 from services.plant.core import OUTCOMES
 
 SETTINGS = ["--set", "episode.timeout_s=1.5", "--set", "planner.horizon=40"]
@@ -46,6 +47,7 @@ def test_small_experiment_records_are_complete_and_resumable(tmp_path):
         assert len(x["path"]) >= 10 and len(x["path"][0]) == 5       # t, X, Y, V, psi
         assert len(x["solve_ms"]) >= 10 and x["max_speed_mps"] >= 0
         assert ("collision" in x) == (x["outcome"] == "collision")
+        assert x["layout"] == 1                                     # the alleyway's only one
     summary = json.loads((out / "summary.json").read_text())
     assert summary == summarize(runs)
     assert {s["controller"] for s in summary} == {"va", "deterministic", "prescient"}
@@ -70,6 +72,18 @@ def test_small_experiment_records_are_complete_and_resumable(tmp_path):
     for name in ("failures.png", "time_to_goal.png", "solve_time.png",
                  "trajectories_alleyway.png", "visibility_alleyway.png"):
         assert (out / name).stat().st_size > 10_000, name
+
+
+def test_runs_on_an_older_scenario_layout_are_not_resumed_with_the_newest(tmp_path):
+    cfg = load_config(overrides=["episode.timeout_s=1.5"])
+    old = {"scenario": "offroad", "controller": "va", "samples": 16, "seed": 0,
+           "outcome": "timeout", "config_digest": config_digest(cfg)}     # no layout: 1
+    (tmp_path / "runs.jsonl").write_text(json.dumps(old) + "\n")
+    before = (tmp_path / "runs.jsonl").read_text()
+    with pytest.raises(ExperimentError, match="layout 1.*episode.layout=1"):
+        experiment(cfg, ["offroad"], ["va"], [16], 2, 0, tmp_path, plots=False, progress=False)
+    assert (tmp_path / "runs.jsonl").read_text() == before
+    assert not (tmp_path / "config.toml").exists()
 
 
 def test_worker_processes_give_the_records_of_one_process(tmp_path):

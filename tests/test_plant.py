@@ -50,8 +50,8 @@ def test_collision_names_what_the_footprint_is_on():
     assert core.collision_of(p, at(p, x, rock.y).x) == core.Collision((0,), False)
     assert core.collision_of(p, at(p, x - 0.4, rock.y).x) is None
     assert core.collision_of(p, at(p, 0.5, 40.0).x) == core.Collision((), True)
-    # offroad: across the 1.8 m between the first hidden obstacle and the first rock
-    off = core.PlantParams.from_config(load_config(), build_scenario("offroad", 0))
+    # offroad layout 1: across the 1.8 m between the first hidden obstacle and the first rock
+    off = core.PlantParams.from_config(load_config(), build_scenario("offroad", 0, layout=1))
     obs = off.scenario.obstacles
     hidden = next(i for i, o in enumerate(obs) if o.hidden)
     first_rock = min((i for i, o in enumerate(obs) if o.y == 33.0), key=lambda i: obs[i].x)
