@@ -10,8 +10,15 @@ import time
 import pytest
 
 from common.config import load_config
-from deploy.experiment import (KEY_FIELDS, ExperimentError, config_digest, cpu_shares,
-                               experiment, read_runs, summarize)
+from deploy.experiment import (
+    KEY_FIELDS,
+    ExperimentError,
+    config_digest,
+    cpu_shares,
+    experiment,
+    read_runs,
+    summarize,
+)
 from services.plant.core import OUTCOMES
 
 SETTINGS = ["--set", "episode.timeout_s=1.5", "--set", "planner.horizon=40"]
