@@ -109,7 +109,7 @@ def plot_scenario(cfg: Config, scenario: str, path: Path) -> Path:
     ax.plot(scn.start.x, scn.start.y, "k^", ms=8, label="start")
     ax.add_patch(plt.Circle((scn.goal.x, scn.goal.y), cfg.episode.goal_radius_m, fill=False,
                             color="r", lw=1.5, label="goal region"))
-    ax.set_title(f"{scenario}: {scn.description}", fontsize=8, wrap=True)
+    ax.set_title(f"{scenario} (layout {scn.layout}): {scn.description}", fontsize=8, wrap=True)
     ax.set_xlabel("x, m")
     ax.set_ylabel("y, m")
     ax.legend(fontsize=8, loc="lower right")

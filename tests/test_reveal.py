@@ -10,7 +10,7 @@ import pytest
 
 from common.config import load_config
 from common.scenarios import build_scenario
-from deploy.reveal import first_sightings, poses_of_path, stopping_distance
+from deploy.reveal import first_sightings, poses_of_path, reveal_runs, stopping_distance
 
 CFG = load_config()
 
@@ -76,3 +76,12 @@ def test_cli_reports_runs_and_skips_a_torn_line(tmp_path):
     r = subprocess.run([sys.executable, "-m", "deploy.cli", "reveal", str(tmp_path / "no")],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 2 and "no such file" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_each_record_is_revealed_on_the_layout_it_ran_on():
+    path = [[0.1 * k, 56.0 + 0.25 * k, 27.0 + 0.5 * k, 3.0, 1.1] for k in range(12)]
+    old = {"scenario": "offroad", "controller": "va", "samples": 400, "seed": 1,
+           "outcome": "success", "path": path, "scenario_seed": 0}      # no layout: 1
+    rows = reveal_runs(load_config(), [old, {**old, "seed": 2, "layout": 2}], obstacles="all")
+    rocks = {(r["seed"], r["obstacle"][1]) for r in rows if r["obstacle"][0] == 59.5}
+    assert rocks == {(1, 33.0), (2, 35.0)}
