@@ -14,9 +14,10 @@ Output directory:
                  where it stopped (a torn last line is ignored); each record
                  carries the configuration's digest, and resuming with another
                  configuration is refused
-  config.toml    the configuration (every parameter; the per-run keys as given):
-                 `--config DIR/config.toml` resumes with it, `vamppi reveal DIR`
-                 reads it
+  config.toml    the configuration (every parameter; the per-run keys as given,
+                 but one scenario and its layout pinned: saved_config):
+                 `--config DIR/config.toml` resumes or reruns with it,
+                 `vamppi reveal DIR` reads it
   summary.json   per scenario/controller/samples: counts of each outcome and the
                  time to goal over successful runs
   summary.md     the same as a markdown table, the paper's figures beside ours; then
@@ -74,6 +75,17 @@ def config_digest(cfg: Config) -> str:
                          ("planner", "samples")):
         d[section].pop(key, None)
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def saved_config(cfg: Config, scenarios: list[str]) -> Config:
+    """The configuration written beside the runs. With one scenario it is pinned there,
+    its layout as a number ("the newest", 0, would rebuild another layout once a newer one
+    lands), so the file alone reruns the table, or runs its setting in `vamppi up`. Neither
+    is in the digest."""
+    if len(set(scenarios)) != 1:
+        return cfg
+    return cfg.replace(**{"episode.scenario": scenarios[0],
+                          "episode.layout": resolve_layout(scenarios[0], cfg.episode.layout)})
 
 
 def run_layout(r: dict[str, Any]) -> int:
@@ -304,7 +316,7 @@ def experiment(cfg: Config, scenarios: list[str], controllers: list[str], sample
                 f"episode.layout={run_layout(r)}, or write to a new --out")
     # the configuration beside its runs: `--config DIR/config.toml` resumes it, and
     # `vamppi reveal DIR` reads it
-    (out / "config.toml").write_text(config_toml(cfg))
+    (out / "config.toml").write_text(config_toml(saved_config(cfg, scenarios)))
     done = {tuple(r[k] for k in KEY_FIELDS) for r in existing}
     # round robin: every combination gets its i-th run before any gets its (i+1)-th,
     # so an experiment stopped early is still balanced

@@ -17,6 +17,7 @@ from deploy.experiment import (
     cpu_shares,
     experiment,
     read_runs,
+    saved_config,
     summarize,
 )
 from services.plant.core import OUTCOMES
@@ -67,6 +68,7 @@ def test_small_experiment_records_are_complete_and_resumable(tmp_path):
     assert read_runs(out / "runs.jsonl") == runs
     saved = load_config(out / "config.toml")
     assert saved.episode.timeout_s == 1.5 and config_digest(saved) == runs[0]["config_digest"]
+    assert (saved.episode.scenario, saved.episode.layout) == ("alleyway", 1)   # pinned
     other = run(out, 2, ["--no-plots", "--set", "planner.temperature=2.0"])
     assert other.returncode == 2 and "another configuration" in other.stderr
     assert read_runs(out / "runs.jsonl") == runs                  # nothing touched
@@ -91,6 +93,18 @@ def test_runs_on_an_older_scenario_layout_are_not_resumed_with_the_newest(tmp_pa
         experiment(cfg, ["offroad"], ["va"], [16], 2, 0, tmp_path, plots=False, progress=False)
     assert (tmp_path / "runs.jsonl").read_text() == before
     assert not (tmp_path / "config.toml").exists()
+
+
+def test_the_saved_configuration_pins_one_scenario_and_its_layout_by_number():
+    from common.scenarios import LAYOUTS
+    cfg = load_config(overrides=["planner.brake_samples=1"])
+    newest = saved_config(cfg, ["offroad"])
+    assert (newest.episode.scenario, newest.episode.layout) == ("offroad", LAYOUTS["offroad"])
+    old = saved_config(cfg.replace(**{"episode.layout": 1}), ["offroad"])
+    assert old.episode.layout == 1
+    assert config_digest(newest) == config_digest(old) == config_digest(cfg)
+    assert newest.planner == cfg.planner and newest.vehicle == cfg.vehicle
+    assert saved_config(cfg, ["alleyway", "offroad"]) == cfg        # one number cannot pin two
 
 
 def test_worker_processes_give_the_records_of_one_process(tmp_path):
