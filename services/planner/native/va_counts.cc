@@ -10,13 +10,14 @@
 // query cell times exp(-gamma C). Each ray is marched from its nearest point and
 // stops at its first blocker, which is itself seen; a pose's `skip` nearest points
 // of every ray block it but do not count (`planner.visibility_stop_decel_mps2`).
-// After each trajectory the bounding box of its relevant blocks (below), where all its counts
-// lie, is set back to zero, so one map per thread serves every trajectory. The mean is read
-// from a padded copy laid out like the count map, so one index serves both.
+// After each trajectory the box of cells its patches read (below), where all its counts lie,
+// is set back to zero, so one map per thread serves every trajectory. The mean is read from
+// a padded copy laid out like the count map, so one index serves both.
 //
-// What no read can feel is not counted (the variances returned are the same): a point whose
-// 8 x 8-cell block lies under no patch of the trajectory; and a ray is walked only up to its
-// last point that could count (none: not walked). A ray's cells come from its first point,
+// What no read can feel is not counted (the variances returned are the same): a point seen
+// from pose i - lag outside the box of the cells that the patches of steps i and later read
+// (`read_boxes`); and a ray is walked only up to its last point that could count (none: not
+// walked). A ray's cells come from its first point,
 // its direction and each point's distance along it (the grid's rays are straight), so a
 // point within float32 rounding of a cell boundary may fall in the neighbouring cell of the
 // JAX form's (tests/test_visibility.py leaves those out).
@@ -183,10 +184,10 @@ inline void separable_products(const uint16_t* src, int64_t wp, const Problem& p
   }
 }
 
-// Blocks of kBlock x kBlock cells: a trajectory's `relevant` map marks the blocks its patches
-// cover; a visible point elsewhere is under no patch of that trajectory, so counting it changes
-// nothing read.
-constexpr int kBlockShift = 3, kBlock = 1 << kBlockShift;
+// A box of cells: first and last row, column (inclusive; empty when r0 > r1).
+struct Box {
+  int32_t r0, r1, c0, c1;
+};
 
 // A thread's scratch for add_visible: every ray's points (rays x stride) and last point.
 struct Walks {
@@ -197,18 +198,20 @@ struct Walks {
   int32_t *at, *counts, *last;
 };
 
-// Adds pose `s`'s visible ray points that lie in relevant blocks to the raw count map (padded)
-// (they all lie in relevant blocks, which the clean-up clears). Every ray's cells
-// are computed first (vector code, one ray after another: their relevance gathers overlap,
-// where a walk's unpredictable branches between them would stall each), then each ray is
+// Adds pose `s`'s visible ray points that lie in `box` to the raw count map (padded). Every
+// ray's cells are computed first (vector code, one ray after another), then each ray is
 // walked to its first blocker or its last point that could count, whichever comes first.
+// (Until session 29 a point counted where its 8 x 8-cell block lay under a patch, looked up
+// by a vector gather; the box test is a comparison, and the outputs are the same bit for
+// bit: 14-17 % less time for the whole iteration at K = 800 on an AMD Zen 5, where that
+// gather was a fifth of this function; docs/benchmarks.md.)
 __attribute__((target("prefer-vector-width=512")))
-void add_visible(const Problem& p, const float* s, int32_t skip, const int32_t* relevant,
-                 int64_t wb, Walks& ws, uint16_t* map) {
+void add_visible(const Problem& p, const float* s, int32_t skip, const Box& box, Walks& ws,
+                 uint16_t* map) {
   const float x = s[kX], y = s[kY];
   const float c = std::cos(s[kPsi]), sn = std::sin(s[kPsi]);
   const int32_t wp = static_cast<int32_t>(p.w + 2 * p.pad);
-  const int32_t pad = static_cast<int32_t>(p.pad), bw = static_cast<int32_t>(wb);
+  const int32_t pad = static_cast<int32_t>(p.pad);
   int64_t vr = static_cast<int64_t>(std::floor((y - p.oy) / p.res));
   int64_t vc = static_cast<int64_t>(std::floor((x - p.ox) / p.res));
   vr = std::clamp<int64_t>(vr, 0, p.h - 1);
@@ -230,8 +233,8 @@ void add_visible(const Problem& p, const float* s, int32_t skip, const int32_t* 
     const float dr = (sn * dir[0] + c * dir[1]) * inv;
     int32_t* __restrict at = ws.at + r * stride;
     int32_t* __restrict counts = ws.counts + r * stride;
-    // the walk can stop at the last point that could count (in a relevant block, not
-    // skipped): what lies beyond it changes nothing read, and a ray with none is not walked;
+    // the walk can stop at the last point that could count (in the box, not skipped): what
+    // lies beyond it changes nothing read, and a ray with none is not walked;
     // nor beyond its first point off the map, which blocks it and is not seen
     int last = -1, first_out = stride;
     // (16 lanes asked for: GCC's own choice here is 8, about 12 % slower)
@@ -244,8 +247,8 @@ void add_visible(const Problem& p, const float* s, int32_t skip, const int32_t* 
       const int32_t row = static_cast<int32_t>(std::min(std::max(fr, 0.0f), fh - 1.0f));
       const int32_t col = static_cast<int32_t>(std::min(std::max(fc, 0.0f), fw - 1.0f));
       at[k] = (row + pad) * wp + col + pad;
-      const int32_t counts_here =
-          relevant[(row >> kBlockShift) * bw + (col >> kBlockShift)] & (k >= skip) & (k < n);
+      const int32_t counts_here = (row >= box.r0) & (row <= box.r1) & (col >= box.c0) &
+                                  (col <= box.c1) & (k >= skip) & (k < n);
       counts[k] = counts_here;
       last = std::max(last, counts_here ? k : -1);
     }
@@ -270,42 +273,25 @@ struct Fused {
   float* out;               // (K, T, P) expected tripped indicators
 };
 
-// A box of blocks: first and last block row, column.
-struct BlockBox {
-  int32_t r0, r1, c0, c1;
-};
-
-// Marks the blocks under the patches around `n` footprint cells, step by step (`n_pts` a
-// step): the blocks of the box around the step's patches, a superset of their own (a few
-// more points counted that no read feels), written without a test per point: 1.2-2.3 %
-// less time for the whole kernel at K = 800 than marking each patch's blocks. Returns the
-// box around all the blocks marked.
-BlockBox mark_relevant(const Problem& p, const int32_t* rows, const int32_t* cols, int64_t n,
-                       int64_t wb, int32_t* relevant) {
-  BlockBox box{INT32_MAX, -1, INT32_MAX, -1};
+// The boxes of cells that the patches of steps i .. T - 1 read, for every step i (`boxes`,
+// T of them; `rows`, `cols` the trajectory's footprint cells, `n_pts` a step): a point seen
+// from pose i - lag is read, if at all, by a patch of step i or later, so one counted outside
+// boxes[i] changes nothing read.
+void read_boxes(const Problem& p, const int32_t* rows, const int32_t* cols, Box* boxes) {
   const int32_t reach = static_cast<int32_t>(p.reach), pad = static_cast<int32_t>(p.pad);
   const int32_t h = static_cast<int32_t>(p.h), w = static_cast<int32_t>(p.w);
-  const int32_t bw = static_cast<int32_t>(wb);
   const int64_t np = p.n_pts;
-  for (int64_t i = 0; i < n; i += np) {
-    int32_t rlo = INT32_MAX, rhi = INT32_MIN, clo = INT32_MAX, chi = INT32_MIN;
-    for (int64_t q = i; q < i + np; ++q) {
+  Box box{INT32_MAX, -1, INT32_MAX, -1};
+  for (int64_t i = p.t_len - 1; i >= 0; --i) {
+    for (int64_t q = i * np; q < (i + 1) * np; ++q) {
+      // the patch around the clipped cell (as `trajectories` reads it), 2 pad + 1 wide
       const int32_t r0 = std::clamp(rows[q], reach, h - 1 - reach);
       const int32_t c0 = std::clamp(cols[q], reach, w - 1 - reach);
-      rlo = std::min(rlo, r0); rhi = std::max(rhi, r0);
-      clo = std::min(clo, c0); chi = std::max(chi, c0);
+      box = {std::min(box.r0, std::max(r0 - pad, 0)), std::max(box.r1, std::min(r0 + pad, h - 1)),
+             std::min(box.c0, std::max(c0 - pad, 0)), std::max(box.c1, std::min(c0 + pad, w - 1))};
     }
-    const int32_t b_r0 = std::max(rlo - pad, 0) >> kBlockShift;
-    const int32_t b_r1 = std::min(rhi + pad, h - 1) >> kBlockShift;
-    const int32_t b_c0 = std::max(clo - pad, 0) >> kBlockShift;
-    const int32_t b_c1 = std::min(chi + pad, w - 1) >> kBlockShift;
-    box = {std::min(box.r0, b_r0), std::max(box.r1, b_r1), std::min(box.c0, b_c0),
-           std::max(box.c1, b_c1)};
-    for (int32_t r = b_r0; r <= b_r1; ++r) {
-      for (int32_t c = b_c0; c <= b_c1; ++c) relevant[r * bw + c] = 1;
-    }
+    boxes[i] = box;
   }
-  return box;
 }
 
 void trajectories(const Problem& p, vamppi::Ranges& ranges, const Fused* fused) {
@@ -321,8 +307,7 @@ void trajectories(const Problem& p, vamppi::Ranges& ranges, const Fused* fused) 
   std::vector<v16f> patch(static_cast<size_t>(n_vec));
   std::vector<v16f> weights(static_cast<size_t>(p.queries * n_vec));
   std::memcpy(weights.data(), p.weights, weights.size() * sizeof(v16f));
-  const int64_t hb = (p.h + kBlock - 1) / kBlock, wb = (p.w + kBlock - 1) / kBlock;
-  std::vector<int32_t> relevant(static_cast<size_t>(hb * wb));   // int32: vector gathers
+  std::vector<Box> boxes(static_cast<size_t>(p.t_len));
   // each query cell's 16 products, lanes not yet summed (padded to whole vectors of zeros)
   const int64_t width_padded = (width + kLanes - 1) / kLanes * kLanes;
   std::vector<v16f> acc(static_cast<size_t>(width_padded), v16f{});
@@ -338,9 +323,7 @@ void trajectories(const Problem& p, vamppi::Ranges& ranges, const Fused* fused) 
       const int32_t* rows = p.rows + k * p.t_len * p.n_pts;
       const int32_t* cols = p.cols + k * p.t_len * p.n_pts;
       float* out = fused ? met.data() : p.out + k * p.t_len * width;
-      std::fill(relevant.begin(), relevant.end(), 0);
-      const BlockBox box = mark_relevant(p, rows + p.lag * p.n_pts, cols + p.lag * p.n_pts,
-                                         (p.t_len - p.lag) * p.n_pts, wb, relevant.data());
+      read_boxes(p, rows, cols, boxes.data());
       for (int64_t i = 0; i < p.t_len; ++i) {
         const int32_t* ri = rows + i * p.n_pts;
         const int32_t* ci = cols + i * p.n_pts;
@@ -358,8 +341,8 @@ void trajectories(const Problem& p, vamppi::Ranges& ranges, const Fused* fused) 
           continue;
         }
         // poses 0 .. i - lag
-        add_visible(p, st + (i - p.lag) * kStateDim, skip[i - p.lag], relevant.data(), wb,
-                    walks, map.data());
+        add_visible(p, st + (i - p.lag) * kStateDim, skip[i - p.lag], boxes[i], walks,
+                    map.data());
         for (int64_t q = 0; q < p.n_pts; ++q) {
           // the patch around the footprint cell starts at the cell itself in padded coordinates
           const int64_t r0 = std::clamp<int64_t>(ri[q], p.reach, p.h - 1 - p.reach);
@@ -391,13 +374,13 @@ void trajectories(const Problem& p, vamppi::Ranges& ranges, const Fused* fused) 
 #pragma omp simd
         for (int64_t j = 0; j < width; ++j) oi[j] = pr[j] * vamppi::exp_nonpositive(g * cn[j]);
       }
-      // every count lies in a relevant block: clear their bounding box, row by row
-      const int64_t c_lo = int64_t{box.c0} << kBlockShift;
-      const int64_t c_hi = std::min<int64_t>((int64_t{box.c1} + 1) << kBlockShift, p.w);
-      const int64_t r_hi = std::min<int64_t>((int64_t{box.r1} + 1) << kBlockShift, p.h);
-      for (int64_t r = int64_t{box.r0} << kBlockShift; r < r_hi && c_lo < c_hi; ++r) {
-        std::memset(map.data() + (r + p.pad) * wp + c_lo + p.pad, 0,
-                    (c_hi - c_lo) * sizeof(uint16_t));
+      // every count lies in boxes[lag], which holds the later ones: clear it, row by row
+      if (p.lag < p.t_len) {
+        const Box& all = boxes[p.lag];
+        for (int64_t r = all.r0; r <= all.r1; ++r) {
+          std::memset(map.data() + (r + p.pad) * wp + all.c0 + p.pad, 0,
+                      (all.c1 - all.c0 + 1) * sizeof(uint16_t));
+        }
       }
       if (fused) {
         const int64_t n = p.t_len * p.n_pts;
