@@ -152,7 +152,7 @@ def test_decayed_variance_matches_the_dense_float64_reference(rng, lag, decel):
 
 
 @pytest.mark.skipif(not native.available(), reason="the native kernel does not build here")
-# splat 17: patches of 19 cells, 3 or 4 blocks of relevance a side (the other marking path)
+# splat 17: patches of 19 cells, wider than a 16-lane row (the general path)
 @pytest.mark.parametrize(("lag", "decel", "splat"),
                          [(*c, 9) for c in CAUSALITY] + [(1, 0.0, 7), (1, 0.0, 17)])
 def test_native_kernel_matches_the_dense_float64_reference(rng, lag, decel, splat):
