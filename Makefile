@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/vamppi up --scenario open-field --controller deterministic --clock lockstep --seed 0
+	$(BIN)/vamppi up --scenario alleyway --controller va --clock lockstep --seed 0
 
 test: $(STAMP)
 	$(BIN)/ruff check common services deploy tests
