@@ -17,10 +17,10 @@
 // What no read can feel is not counted (the variances returned are the same): a point seen
 // from pose i - lag outside the box of the cells that the patches of steps i and later read
 // (`read_boxes`); and a ray is walked only up to its last point that could count (none: not
-// walked). A ray's cells come from its first point,
-// its direction and each point's distance along it (the grid's rays are straight), so a
-// point within float32 rounding of a cell boundary may fall in the neighbouring cell of the
-// JAX form's (tests/test_visibility.py leaves those out).
+// walked). A ray's cells come from its first point, its direction and each point's distance
+// along it (the grid's rays are straight), so a point within float32 rounding of a cell
+// boundary may fall in the neighbouring cell of the JAX form's (tests/test_visibility.py
+// leaves those out).
 //
 // Why native: on XLA:CPU the vectorised form pays 3-4 ns per scatter and
 // gather element for 19 M ray points at K = 800 (docs/benchmarks.md); here each
@@ -287,8 +287,10 @@ void read_boxes(const Problem& p, const int32_t* rows, const int32_t* cols, Box*
       // the patch around the clipped cell (as `trajectories` reads it), 2 pad + 1 wide
       const int32_t r0 = std::clamp(rows[q], reach, h - 1 - reach);
       const int32_t c0 = std::clamp(cols[q], reach, w - 1 - reach);
-      box = {std::min(box.r0, std::max(r0 - pad, 0)), std::max(box.r1, std::min(r0 + pad, h - 1)),
-             std::min(box.c0, std::max(c0 - pad, 0)), std::max(box.c1, std::min(c0 + pad, w - 1))};
+      box = {std::min(box.r0, std::max(r0 - pad, 0)),
+             std::max(box.r1, std::min(r0 + pad, h - 1)),
+             std::min(box.c0, std::max(c0 - pad, 0)),
+             std::max(box.c1, std::min(c0 + pad, w - 1))};
     }
     boxes[i] = box;
   }
