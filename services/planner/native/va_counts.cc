@@ -203,7 +203,7 @@ struct Walks {
 // walked to its first blocker or its last point that could count, whichever comes first.
 // (Until session 29 a point counted where its 8 x 8-cell block lay under a patch, looked up
 // by a vector gather; the box test is a comparison, and the outputs are the same bit for
-// bit: 14-17 % less time for the whole iteration at K = 800 on an AMD Zen 5, where that
+// bit: 13-17 % less time for the whole iteration at K = 800 on an AMD Zen 5, where that
 // gather was a fifth of this function; docs/benchmarks.md.)
 __attribute__((target("prefer-vector-width=512")))
 void add_visible(const Problem& p, const float* s, int32_t skip, const Box& box, Walks& ws,
