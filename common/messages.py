@@ -299,14 +299,20 @@ def _decode_array(schema: str, name: str, spec: ArraySpec, raw: Any,
         raise _fail(schema, name, f"has {len(data)} bytes, shape {tuple(shape)} needs "
                     f"{dt.itemsize * math.prod(shape)}")
     a = np.frombuffer(data, dtype=dt).reshape(shape)     # a view of the payload
-    finite = spec.finite and dt.kind == "f"
+    check_values(schema, name, spec, a)
+    return a
+
+
+def check_values(schema: str, name: str, spec: ArraySpec, a: np.ndarray) -> None:
+    """Raise `DecodeError` unless every value of `a` is what field `name` requires (finite,
+    not negative): the one read of each received array value that `decode` makes."""
+    finite = spec.finite and a.dtype.kind == "f"
     if finite and spec.nonneg and _below_max_bits(a):
-        return a                                     # one pass (see _below_max_bits)
+        return                                       # one pass (see _below_max_bits)
     if finite and not np.isfinite(a).all():
         raise _fail(schema, name, f"has {int((~np.isfinite(a)).sum())} non-finite values")
     if spec.nonneg and (a < 0).any():
         raise _fail(schema, name, "has negative values")
-    return a
 
 
 def _below_max_bits(a: np.ndarray) -> bool:

@@ -9,7 +9,8 @@ mapper    one depth frame fused, the occluded field of view inpainted, the map
 bus       a map-sized message (two 400 x 400 float32 layers) from one client
           session to another through a real Zenoh router on loopback: one-way
           latency (one message in flight) and throughput (back to back), with
-          our codec (encode + put ... decode) and a raw put of the same bytes.
+          our codec (encode + put ... decode), a raw put of the same bytes, and the
+          floor under any checked array codec (one copy out, one checked read in).
 peer      our plain-MPPI iteration against pytorch_mppi's on one problem
           (deploy/peer.py; the optional extra `.[peer]`).
 pipeline  the four services as processes around an embedded router in realtime
@@ -197,23 +198,37 @@ def bench_mapper(cfg: Config, reps: int, sizes: tuple[tuple[int, int], ...] = ((
 
 
 def bench_bus(cfg: Config, reps: int, burst: int = 200) -> dict[str, Any]:
-    """Map-sized messages through a router on a free loopback port (client sessions)."""
+    """Map-sized messages through a router on a free loopback port (client sessions), three
+    ways side by side: our codec; a raw put of bytes made once; and the floor under any codec
+    that carries numpy arrays over zenoh-python and checks them on arrival (the arrays joined
+    into a new `bytes`, the one copy `put` needs as it takes no buffer views, then their values
+    checked as `decode` checks them, nothing else)."""
+    import dataclasses
     import threading
 
     import zenoh
 
     from common.bus import open_session
     from common.config import BusConfig
-    from common.messages import Header, Map, decode, encode
+    from common.messages import ALIGN, Header, Map, check_values, decode, encode
     from deploy.launch import free_port
     n = cfg.mapper.size_cells
     rng = np.random.default_rng(0)
     mean = rng.normal(size=(n, n)).astype(np.float32)
     var = rng.uniform(0, 3, (n, n)).astype(np.float32)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
+    specs = {f.name: f.metadata["kind"] for f in dataclasses.fields(Map) if f.name != "header"}
 
     def make(i: int) -> Map:
         return Map(Header(i, 0.0, time.time(), "bench/0"), mean, var, np.zeros(2), 0.2)
+
+    def floor_payload(i: int) -> bytes:
+        return b"".join((i.to_bytes(ALIGN, "little"), mean.data, var.data))
+
+    def floor_check(payload: bytes) -> None:
+        layers = np.frombuffer(payload, np.float32, offset=ALIGN).reshape(2, n, n)
+        check_values(Map.SCHEMA, "mean", specs["mean"], layers[0])
+        check_values(Map.SCHEMA, "variance", specs["variance"], layers[1])
 
     size = len(encode(make(0)))
     # the codec alone, in this thread, before any session exists: what each end costs
@@ -228,65 +243,70 @@ def bench_bus(cfg: Config, reps: int, burst: int = 200) -> dict[str, Any]:
         if i >= 5:
             codec_t["encode"].append(t1 - t0)
             codec_t["decode"].append(t2 - t1)
+    raw = encode(make(0))
+    # payload name: (what the sender puts for message i, what the receiver does with the bytes)
+    cases: dict[str, tuple[Any, Any]] = {
+        "codec": (lambda i: encode(make(i)), lambda b: decode(b, Map)),
+        "raw": (lambda i: raw, lambda b: None),
+        "floor": (floor_payload, floor_check)}
     router = open_session(BusConfig("router", (), (endpoint,), False))
     pub_s = open_session(BusConfig("client", (endpoint,), (), False))
     sub_s = open_session(BusConfig("client", (endpoint,), (), False))
     got: list[float] = []
     arrived = threading.Condition()
 
-    def on_sample(sample, codec: bool) -> None:
-        if codec:
-            decode(sample.payload.to_bytes(), Map)
-        else:
-            sample.payload.to_bytes()
+    def on_sample(sample, receive) -> None:
+        receive(sample.payload.to_bytes())
         with arrived:
             got.append(time.perf_counter())
             arrived.notify_all()
 
     results = []
-    names = {True: "codec", False: "raw"}
     try:
         pubs = {}
-        for codec in (True, False):
-            key = f"bench/bus/{names[codec]}"
-            sub_s.declare_subscriber(key, lambda s, c=codec: on_sample(s, c))
-            pubs[codec] = pub_s.declare_publisher(
+        for name, (_, receive) in cases.items():
+            key = f"bench/bus/{name}"
+            sub_s.declare_subscriber(key, lambda s, r=receive: on_sample(s, r))
+            pubs[name] = pub_s.declare_publisher(
                 key, reliability=zenoh.Reliability.RELIABLE,
                 congestion_control=zenoh.CongestionControl.BLOCK)
         time.sleep(0.5)                              # routes established
-        raw = encode(make(0))
-        lat: dict[bool, list[float]] = {True: [], False: []}
-        for i in range(reps + 5):                    # interleaved: the ratio holds
-            for codec in (True, False):
+        lat: dict[str, list[float]] = {name: [] for name in cases}
+        for i in range(reps + 5):                    # interleaved: the ratios hold
+            for name, (send, _) in cases.items():
                 got.clear()
                 t0 = time.perf_counter()
-                pubs[codec].put(encode(make(i)) if codec else raw)
+                pubs[name].put(send(i))
                 with arrived:
                     if not arrived.wait_for(lambda: got, timeout=5.0):
                         raise RuntimeError(f"bus bench: message {i} not delivered in 5 s")
                 if i >= 5:                           # warm-up excluded
-                    lat[codec].append(got[0] - t0)
-        rates: dict[bool, list[float]] = {True: [], False: []}
+                    lat[name].append(got[0] - t0)
+        rates: dict[str, list[float]] = {name: [] for name in cases}
         for _ in range(3):                           # bursts, alternating
-            for codec in (True, False):
+            for name, (send, _) in cases.items():
                 got.clear()
                 t0 = time.perf_counter()
                 for i in range(burst):
-                    pubs[codec].put(encode(make(i)) if codec else raw)
+                    pubs[name].put(send(i))
                 with arrived:
                     if not arrived.wait_for(lambda: len(got) >= burst, timeout=60.0):
                         raise RuntimeError(f"bus bench: {len(got)} of {burst} delivered")
-                rates[codec].append(burst / (got[-1] - t0))
-        for codec in (True, False):
-            rate = float(np.median(rates[codec]))
-            results.append({"payload": names[codec], "bytes": size, **stats_ms(lat[codec]),
-                            "msgs_per_s": round(rate, 1), "mb_per_s": round(rate * size / 1e6, 1)})
+                rates[name].append(burst / (got[-1] - t0))
+        raw_p50 = float(np.median(lat["raw"]))
+        for name, (send, _) in cases.items():
+            rate = float(np.median(rates[name]))
+            nbytes = len(send(0))
+            over = float(np.median(lat[name])) / raw_p50 - 1
+            results.append({"payload": name, "bytes": nbytes, **stats_ms(lat[name]),
+                            "over_raw_p50": round(over, 3), "msgs_per_s": round(rate, 1),
+                            "mb_per_s": round(rate * nbytes / 1e6, 1)})
     finally:
         for s in (pub_s, sub_s, router):
             s.close()
     return {"benchmark": "bus", **device_info(), "zenoh": version("eclipse-zenoh"),
             "settings": {"endpoint": "tcp loopback, via a router", "reps": reps,
-                         "burst": burst, "interleaved": True},
+                         "burst": burst, "interleaved": True, "map_bytes": size},
             "codec_alone": {k: stats_ms(v) for k, v in codec_t.items()}, "cases": results}
 
 
@@ -485,11 +505,12 @@ def table(result: dict[str, Any]) -> str:
                          f"| {c['total']['median_ms']:.1f} | {c['total']['p95_ms']:.1f} "
                          f"| {c['compile_s']:.1f} |")
         return "\n".join(lines)
-    lines = [head, "", "| payload | bytes | latency p50 ms | p99 ms | msgs/s | MB/s |",
-             "|---|---|---|---|---|---|"]
+    lines = [head, "", "| payload | bytes | latency p50 ms | p99 ms | p50 over raw | msgs/s "
+             "| MB/s |", "|---|---|---|---|---|---|---|"]
     for c in result["cases"]:
         lines.append(f"| {c['payload']} | {c['bytes']} | {c['median_ms']:.2f} | {c['p99_ms']:.2f} "
-                     f"| {c['msgs_per_s']:.0f} | {c['mb_per_s']:.0f} |")
+                     f"| {100 * c['over_raw_p50']:+.0f} % | {c['msgs_per_s']:.0f} "
+                     f"| {c['mb_per_s']:.0f} |")
     alone = result["codec_alone"]
     lines += ["", "codec alone, one thread, no bus: encode "
               f"{1e3 * alone['encode']['median_ms']:.0f} us, decode "

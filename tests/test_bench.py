@@ -46,10 +46,11 @@ def test_mapper_bench_times_every_stage_at_both_camera_sizes():
 
 def test_bus_bench_delivers_map_sized_messages_through_a_loopback_router():
     doc = bench_json("bus", "--reps", "10")
-    assert [c["payload"] for c in doc["cases"]] == ["codec", "raw"]
+    assert [c["payload"] for c in doc["cases"]] == ["codec", "raw", "floor"]
     for c in doc["cases"]:
         assert c["bytes"] > 2 * 400 * 400 * 4 and c["reps"] == 10
         assert 0 < c["median_ms"] <= c["p99_ms"] and c["msgs_per_s"] > 0
+    assert doc["cases"][1]["over_raw_p50"] == 0
     for stage in ("encode", "decode"):
         assert doc["codec_alone"][stage]["reps"] == 100
         assert doc["codec_alone"][stage]["median_ms"] > 0
