@@ -1,33 +1,39 @@
-"""The bus: zenoh-python sessions, typed publishers and subscribers, liveliness, health.
+"""The bus: transports, typed publishers and subscribers, liveliness, health, heartbeats.
 
 Keys (one builder each, below):
 
-    vamppi/<vehicle>/<service>/<topic>                      data
-    vamppi/<vehicle>/alive/<service>/<instance>             liveliness token
-    vamppi/<vehicle>/admin/<service>/<instance>/health      queryable (JSON counters)
-    vamppi/<vehicle>/admin/<service>/<instance>/config      queryable (JSON config)
+    vamppi/<vehicle>/<service>/<topic>                        data (TOPICS)
+    vamppi/<vehicle>/<service>/heartbeat                      every instance's beat
+    vamppi/<vehicle>/alive/<service>/<instance>               liveliness token
+    vamppi/<vehicle>/admin/<service>/<instance>/health        queryable (JSON counters)
+    vamppi/<vehicle>/admin/<service>/<instance>/config        queryable (JSON config)
+    vamppi/<vehicle>/admin/<service>/<instance>/latest/<topic>  queryable: the newest
+                                                              message of a topic it holds
 
-Callbacks never block: they decode, validate and put the message in an `Inbox`
-(latest-value: a ring of one; or a bounded FIFO for lockstep) and return. A
-payload that fails to decode is dropped with one log line and counted.
+A `Transport` is the seam between a node and the wire: `ZenohTransport` (a zenoh
+session) or `MemoryTransport` (an in-process `MemoryBus`, for tests of a node's
+protocol without a router). Callbacks never block: they decode and put the
+message in an `Inbox` (per source: latest-value, a ring of one, or a bounded FIFO
+for lockstep) and return. A payload that fails to decode is dropped with one log
+line and counted; seq gaps are tracked per publisher (source and boot).
 """
 
 from __future__ import annotations
 
 import collections
+import itertools
 import json
 import logging
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Any, Generic, TypeVar
-
-import zenoh
+from typing import Any, Generic, Protocol, TypeVar
 
 from common.config import BusConfig
 from common.memory import keep_large_buffers
-from common.messages import DecodeError, Header, InputRef, Message, decode, encode
+from common.messages import DecodeError, Heartbeat, InputRef, Message, decode, encode
+from common.protocol import Out, SeqTrack, Stamper
 
 log = logging.getLogger(__name__)
 
@@ -45,11 +51,23 @@ TOPICS: dict[str, tuple[str, str]] = {
     "stats": ("planner", "vamppi.Stats"),
 }
 SERVICES = ("plant", "sensor", "mapper", "planner")
+# what each service reads (TOPICS names what it writes)
+INPUTS: dict[str, tuple[str, ...]] = {"plant": ("cmd",), "sensor": ("state",),
+                                      "mapper": ("depth",), "planner": ("state", "map")}
+HEARTBEAT = "heartbeat"
+# topics whose publisher keeps what it sent for `RECOVERY_S` (zenoh-ext advanced publishers):
+# a subscriber that missed samples of them (a cut link) fetches them late
+CACHED: dict[str, str] = {"state": "plant", "clock": "plant", "events": "plant"}
+RECOVERY_S = 30.0
 
 
 def topic_key(vehicle: str, topic: str) -> str:
     service, _ = TOPICS[topic]
     return f"{PREFIX}/{vehicle}/{service}/{topic}"
+
+
+def heartbeat_key(vehicle: str, service: str = "*") -> str:
+    return f"{PREFIX}/{vehicle}/{service}/{HEARTBEAT}"
 
 
 def alive_key(vehicle: str, service: str = "*", instance: str = "*") -> str:
@@ -60,8 +78,47 @@ def admin_key(vehicle: str, service: str, instance: str, what: str) -> str:
     return f"{PREFIX}/{vehicle}/admin/{service}/{instance}/{what}"
 
 
-def zenoh_config(cfg: BusConfig) -> zenoh.Config:
+def latest_key(vehicle: str, service: str, instance: str, topic: str) -> str:
+    return admin_key(vehicle, service, instance, f"latest/{topic}")
+
+
+def topic_of(key: str) -> str:
+    """`vamppi/<vehicle>/<service>/<topic>` -> topic ('' for other keys)."""
+    parts = key.split("/")
+    return parts[3] if len(parts) == 4 and parts[0] == PREFIX and parts[3] in TOPICS else ""
+
+
+def key_matches(pattern: str, key: str) -> bool:
+    """Whether a concrete `key` matches a key expression with `*` (one chunk) and `**` (any
+    number of chunks), as zenoh matches them."""
+    def match(p: list[str], k: list[str]) -> bool:
+        if not p:
+            return not k
+        if p[0] == "**":
+            return any(match(p[1:], k[i:]) for i in range(len(k) + 1))
+        return bool(k) and (p[0] == "*" or p[0] == k[0]) and match(p[1:], k[1:])
+    return match(pattern.split("/"), key.split("/"))
+
+
+# ----------------------------------------------------------------------------- transports
+class Transport(Protocol):
+    """What a node needs of the wire."""
+
+    def publisher(self, key: str, *, express: bool = False, drop: bool = False,
+                  cache: int = 0) -> Any: ...                      # .put(bytes)
+    def subscriber(self, key: str, callback: Callable[[str, bytes], None], *,
+                   recover: bool = False,
+                   on_miss: Callable[[str, int], None] | None = None) -> Any: ...
+    def queryable(self, key: str, answer: Callable[[str], list[tuple[str, bytes]]]) -> Any: ...
+    def query(self, key: str, timeout: float = 2.0) -> list[tuple[str, bytes]]: ...
+    def token(self, key: str) -> Any: ...
+    def tokens(self, key: str, timeout: float = 2.0) -> list[str]: ...
+    def close(self) -> None: ...
+
+
+def zenoh_config(cfg: BusConfig):
     """A zenoh.Config from our BusConfig: mode, endpoints, multicast scouting."""
+    import zenoh
     zc = zenoh.Config()
     zc.insert_json5("mode", json.dumps(cfg.mode))
     zc.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
@@ -70,12 +127,161 @@ def zenoh_config(cfg: BusConfig) -> zenoh.Config:
     return zc
 
 
-def open_session(cfg: BusConfig) -> zenoh.Session:
+def open_session(cfg: BusConfig):
+    import zenoh
     zenoh.try_init_log_from_env()
     keep_large_buffers()
     return zenoh.open(zenoh_config(cfg))
 
 
+class ZenohTransport:
+    """A zenoh session as a `Transport`. Publishers with `cache` are zenoh-ext advanced
+    publishers (the last `cache` samples kept for subscribers that missed them, and a
+    heartbeat by which they notice a miss); `recover` subscribers are advanced subscribers
+    that fetch what they missed from those caches (delivered late, in order)."""
+
+    def __init__(self, session: Any, owned: bool = False):
+        self.session, self._owned = session, owned
+
+    @classmethod
+    def open(cls, cfg: BusConfig) -> ZenohTransport:
+        return cls(open_session(cfg), owned=True)
+
+    def publisher(self, key: str, *, express: bool = False, drop: bool = False,
+                  cache: int = 0) -> Any:
+        import zenoh
+        cc = zenoh.CongestionControl.DROP if drop else zenoh.CongestionControl.BLOCK
+        if cache:
+            import zenoh.ext as ze
+            return ze.declare_advanced_publisher(
+                self.session, key, reliability=zenoh.Reliability.RELIABLE, congestion_control=cc,
+                express=express, cache=ze.CacheConfig(cache),
+                sample_miss_detection=ze.MissDetectionConfig(heartbeat=0.5),
+                publisher_detection=True)
+        return self.session.declare_publisher(key, reliability=zenoh.Reliability.RELIABLE,
+                                              congestion_control=cc, express=express)
+
+    def subscriber(self, key: str, callback: Callable[[str, bytes], None], *,
+                   recover: bool = False,
+                   on_miss: Callable[[str, int], None] | None = None) -> Any:
+        def on_sample(s: Any) -> None:
+            callback(str(s.key_expr), s.payload.to_bytes())
+        if not recover:
+            return self.session.declare_subscriber(key, on_sample)
+        import zenoh.ext as ze
+        sub = ze.declare_advanced_subscriber(
+            self.session, key, on_sample, history=ze.HistoryConfig(detect_late_publishers=True),
+            recovery=ze.RecoveryConfig(heartbeat=True))
+        if on_miss is not None:
+            listener = sub.sample_miss_listener(lambda m: on_miss(str(m.source), int(m.nb)))
+            return (sub, listener)
+        return sub
+
+    def queryable(self, key: str, answer: Callable[[str], list[tuple[str, bytes]]]) -> Any:
+        def on_query(q: Any) -> None:
+            for k, payload in answer(str(q.key_expr)):
+                q.reply(k, payload)
+        return self.session.declare_queryable(key, on_query)
+
+    def query(self, key: str, timeout: float = 2.0) -> list[tuple[str, bytes]]:
+        return [(str(r.ok.key_expr), r.ok.payload.to_bytes())
+                for r in self.session.get(key, timeout=timeout) if r.ok is not None]
+
+    def token(self, key: str) -> Any:
+        return self.session.liveliness().declare_token(key)
+
+    def tokens(self, key: str, timeout: float = 2.0) -> list[str]:
+        return [str(r.ok.key_expr) for r in self.session.liveliness().get(key, timeout=timeout)
+                if r.ok is not None]
+
+    def close(self) -> None:
+        if self._owned:
+            self.session.close()
+
+
+class MemoryBus:
+    """An in-process bus: what `MemoryTransport`s put reaches every matching subscription at
+    once, in the putting thread (so a node's protocol runs in a test without a router)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.RLock()
+        self._subs: dict[int, tuple[str, Callable[[str, bytes], None]]] = {}
+        self._queryables: dict[int, tuple[str, Callable[[str], list[tuple[str, bytes]]]]] = {}
+        self._tokens: dict[int, str] = {}
+        self._ids = itertools.count()
+        self.puts: collections.Counter[str] = collections.Counter()
+
+    def put(self, key: str, payload: bytes) -> None:
+        with self._lock:
+            subs = [cb for pattern, cb in self._subs.values() if key_matches(pattern, key)]
+            self.puts[key] += 1
+        for cb in subs:
+            cb(key, payload)
+
+    def add(self, table: dict, value: Any) -> Callable[[], None]:
+        with self._lock:
+            i = next(self._ids)
+            table[i] = value
+        return lambda: self._remove(table, i)
+
+    def _remove(self, table: dict, i: int) -> None:
+        with self._lock:
+            table.pop(i, None)
+
+
+class _Handle:
+    def __init__(self, undeclare: Callable[[], None], put: Callable[[bytes], None] | None = None):
+        self.undeclare = undeclare
+        if put is not None:
+            self.put = put
+
+
+class MemoryTransport:
+    """A `Transport` on a `MemoryBus`."""
+
+    def __init__(self, bus: MemoryBus):
+        self.bus = bus
+        self._handles: list[_Handle] = []
+
+    def _keep(self, h: _Handle) -> _Handle:
+        self._handles.append(h)
+        return h
+
+    def publisher(self, key: str, *, express: bool = False, drop: bool = False,
+                  cache: int = 0) -> Any:
+        return self._keep(_Handle(lambda: None, lambda payload: self.bus.put(key, payload)))
+
+    def subscriber(self, key: str, callback: Callable[[str, bytes], None], *,
+                   recover: bool = False,
+                   on_miss: Callable[[str, int], None] | None = None) -> Any:
+        return self._keep(_Handle(self.bus.add(self.bus._subs, (key, callback))))
+
+    def queryable(self, key: str, answer: Callable[[str], list[tuple[str, bytes]]]) -> Any:
+        return self._keep(_Handle(self.bus.add(self.bus._queryables, (key, answer))))
+
+    def query(self, key: str, timeout: float = 2.0) -> list[tuple[str, bytes]]:
+        with self.bus._lock:
+            found = [(k, a) for k, a in self.bus._queryables.values() if key_matches(key, k)]
+        return [reply for k, a in found for reply in a(k)]
+
+    def token(self, key: str) -> Any:
+        return self._keep(_Handle(self.bus.add(self.bus._tokens, key)))
+
+    def tokens(self, key: str, timeout: float = 2.0) -> list[str]:
+        with self.bus._lock:
+            return [k for k in self.bus._tokens.values() if key_matches(key, k)]
+
+    def close(self) -> None:
+        for h in self._handles:
+            h.undeclare()
+        self._handles.clear()
+
+
+def as_transport(bus: BusConfig | Transport) -> Transport:
+    return ZenohTransport.open(bus) if isinstance(bus, BusConfig) else bus
+
+
+# ----------------------------------------------------------------------------- health
 @dataclass
 class Health:
     """Counters a service exposes on its health queryable."""
@@ -84,7 +290,11 @@ class Health:
     dropped: int = 0              # failed to decode or validate
     superseded: int = 0           # replaced in a latest-value inbox before being read
     last_error: str = ""
+    rejected: collections.Counter = field(default_factory=collections.Counter)  # "topic: why"
+    last_rejected: str = ""
+    missed: collections.Counter = field(default_factory=collections.Counter)   # zenoh's count
     extra: dict[str, Any] = field(default_factory=dict)
+    seqs: dict[tuple[str, str, int], SeqTrack] = field(default_factory=dict)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     def count_error(self, text: str) -> None:
@@ -92,22 +302,51 @@ class Health:
             self.dropped += 1
             self.last_error = text
 
+    def count_rejected(self, topic: str, reason: str, detail: str = "") -> None:
+        with self._lock:
+            self.rejected[f"{topic}: {reason}"] += 1
+            self.last_rejected = f"{topic}: {reason}" + (f" ({detail})" if detail else "")
+
+    def count(self, name: str, n: int = 1) -> None:
+        with self._lock:
+            self.extra[name] = self.extra.get(name, 0) + n
+
+    def saw(self, topic: str, source: str, boot: int, seq: int) -> None:
+        with self._lock:
+            self.seqs.setdefault((topic, source, boot), SeqTrack()).see(seq)
+
     def as_dict(self) -> dict[str, Any]:
         with self._lock:
-            return {"messages_in": self.messages_in, "messages_out": self.messages_out,
-                    "dropped": self.dropped, "superseded": self.superseded,
-                    "last_error": self.last_error, **self.extra}
+            gaps = {f"{t} {s} {b}": {"missing": tr.missing, "gaps": tr.gaps[:20],
+                                     "late": tr.late, "duplicates": tr.duplicates}
+                    for (t, s, b), tr in self.seqs.items() if tr.missing or tr.late}
+            out = {"messages_in": self.messages_in, "messages_out": self.messages_out,
+                   "dropped": self.dropped, "superseded": self.superseded,
+                   "last_error": self.last_error}
+            if self.rejected:
+                out.update(rejected=dict(self.rejected), last_rejected=self.last_rejected)
+            if gaps:
+                out["seq_gaps"] = gaps
+            if self.missed:
+                out["missed"] = dict(self.missed)
+            return {**out, **self.extra}
 
 
 M = TypeVar("M", bound=Message)
 
 
 class Inbox(Generic[M]):
-    """Decoded messages of one topic. `maxlen=1`: latest value, never a queue."""
+    """Decoded messages of one topic, in arrival order, kept per source: `maxlen` per source
+    (1: latest value, never a queue), so that one source's flood displaces only its own.
+    At most `max_sources` sources are kept; messages of more are counted and dropped."""
 
-    def __init__(self, cls: type[M], key: str, health: Health, maxlen: int = 1):
+    def __init__(self, cls: type[M], key: str, health: Health, maxlen: int = 1,
+                 max_sources: int = 32):
         self.cls, self.key, self.health = cls, key, health
-        self._q: collections.deque[tuple[M, float]] = collections.deque(maxlen=maxlen)
+        self.topic = topic_of(key) or key.rsplit("/", 1)[-1]
+        self.maxlen, self.max_sources = maxlen, max_sources
+        self._q: dict[str, collections.deque[tuple[int, M, float]]] = {}
+        self._arrivals = itertools.count()
         self._cv = threading.Condition()
 
     def on_payload(self, payload: bytes) -> None:
@@ -119,130 +358,246 @@ class Inbox(Generic[M]):
             self.health.count_error(f"{self.key}: {exc}")
             log.warning("dropped a message on %s: %s", self.key, exc)
             return
+        h = msg.header
+        self.health.saw(self.topic, h.source, h.boot, h.seq)
         with self._cv:
-            if len(self._q) == self._q.maxlen:
+            q = self._q.get(h.source)
+            if q is None:
+                if len(self._q) >= self.max_sources:
+                    self.health.count_rejected(self.topic, "too many sources", h.source)
+                    return
+                q = self._q[h.source] = collections.deque(maxlen=self.maxlen)
+            if len(q) == q.maxlen:
                 self.health.superseded += 1
-            self._q.append((msg, received))
+            q.append((next(self._arrivals), msg, received))
             self.health.messages_in += 1
             self._cv.notify_all()
 
-    def get(self, timeout: float | None = None) -> M | None:
-        """The oldest waiting message (the only one, for latest-value), or None."""
-        with self._cv:
-            if not self._q and not self._cv.wait_for(lambda: bool(self._q), timeout):
-                return None
-            return self._q.popleft()[0]
+    def _pop_oldest(self) -> tuple[M, float] | None:
+        best = None
+        for q in self._q.values():
+            if q and (best is None or q[0][0] < best[0][0]):
+                best = q
+        if best is None:
+            return None
+        _, msg, received = best.popleft()
+        return msg, received
 
-    def get_where(self, pred, timeout: float | None = None) -> M | None:
-        """Wait for a message satisfying `pred`; messages before it are discarded."""
-        deadline = None if timeout is None else time.monotonic() + timeout
+    def get(self, timeout: float | None = None) -> M | None:
+        """The oldest waiting message, or None after `timeout`."""
+        got = self.get_received(timeout)
+        return None if got is None else got[0]
+
+    def get_received(self, timeout: float | None = None) -> tuple[M, float] | None:
+        """The oldest waiting message and its receive wall time, or None after `timeout`."""
         with self._cv:
-            while True:
-                while self._q:
-                    msg = self._q.popleft()[0]
-                    if pred(msg):
-                        return msg
-                left = None if deadline is None else deadline - time.monotonic()
-                if left is not None and left <= 0:
-                    return None
-                self._cv.wait(left)
+            got = self._pop_oldest()
+            if got is None and timeout and self._cv.wait(timeout):
+                got = self._pop_oldest()
+            return got
+
+    def drain(self) -> list[tuple[M, float]]:
+        """Every waiting message with its receive wall time, in arrival order."""
+        with self._cv:
+            out = []
+            while (got := self._pop_oldest()) is not None:
+                out.append(got)
+            return out
+
+    def wait(self, timeout: float) -> bool:
+        """Block until a message is waiting (True) or `timeout` passes."""
+        with self._cv:
+            return any(self._q.values()) or self._cv.wait(timeout)
 
     def peek_latest(self) -> M | None:
+        """The newest waiting message of any source, left in place."""
         with self._cv:
-            return self._q[-1][0] if self._q else None
+            items = [q[-1] for q in self._q.values() if q]
+            return max(items, key=lambda i: i[0])[1] if items else None
 
 
 class TypedPublisher(Generic[M]):
-    """Publishes one message type on one key; fills the header (gap-free seq)."""
+    """Publishes one message type on one key; fills the header (gap-free seq, boot)."""
 
-    def __init__(self, session: zenoh.Session, key: str, cls: type[M], source: str,
-                 health: Health, express: bool = False):
-        self.key, self.cls, self.source, self.health = key, cls, source, health
-        self.seq = 0
-        self._pub = session.declare_publisher(
-            key, reliability=zenoh.Reliability.RELIABLE,
-            congestion_control=zenoh.CongestionControl.BLOCK, express=express)
+    def __init__(self, transport: Transport, key: str, cls: type[M], stamper: Stamper,
+                 health: Health, express: bool = False, drop: bool = False, cache: int = 0):
+        self.key, self.cls, self.health = key, cls, health
+        self._stamper = stamper
+        self._pub = transport.publisher(key, express=express, drop=drop, cache=cache)
+        self.latest: bytes | None = None          # what `serve_latest` answers
 
-    def publish(self, stamp: float, inputs: Iterable[InputRef] = (), **fields: Any) -> M:
-        msg = self.cls(header=Header(self.seq, float(stamp), time.time(), self.source,
-                                     tuple(inputs)), **fields)
-        self._pub.put(encode(msg))
-        self.seq += 1
+    @property
+    def seq(self) -> int:
+        return self._stamper.seq
+
+    def publish(self, stamp: float, inputs: Iterable[InputRef] = (), episode: int = 0,
+                **fields: Any) -> M:
+        return self.publish_out(Out(self.key, stamp, fields, tuple(inputs), episode))
+
+    def publish_out(self, out: Out) -> M:
+        msg = self._stamper.make(self.cls, out)
+        payload = encode(msg)
+        self._pub.put(payload)
+        self.latest = payload
         self.health.messages_out += 1
-        return msg
+        return msg  # type: ignore[return-value]
 
 
-def ref_of(key: str, msg: Message) -> InputRef:
-    """The InputRef naming `msg` as received on `key`."""
-    return InputRef(key, msg.header.seq, msg.header.stamp)
-
-
+# ----------------------------------------------------------------------------- node
 class Node:
-    """One service instance on the bus: session, token, health and config queryables.
+    """One service instance on the bus: transport, token, health, config and latest-value
+    queryables, its heartbeat.
 
-    Use as a context manager; declare subscribers and publishers, then call
-    `ready()` to raise the liveliness token once the service can work.
+    Use as a context manager; declare subscribers and publishers, then call `ready()` to
+    raise the liveliness token once the service can work. The heartbeat (`Heartbeat`
+    every `period_s` on `heartbeat_key`) runs from `__enter__`, status `starting` until
+    `ready()`; its thread beats `ready` only while the main loop calls `progress()` within
+    `deadline_s` (else `stalled`), so that a wedged loop is seen even while the
+    process's transport threads still answer the router.
     """
 
-    def __init__(self, cfg: BusConfig, vehicle: str, service: str, instance: str,
-                 config_dict: dict[str, Any] | None = None):
-        self.cfg, self.vehicle, self.service, self.instance = cfg, vehicle, service, instance
+    def __init__(self, bus: BusConfig | Transport, vehicle: str, service: str, instance: str,
+                 config_dict: dict[str, Any] | None = None, heartbeat_s: float = 0.1,
+                 deadline_s: float = 1.0):
+        self._bus, self.vehicle, self.service, self.instance = bus, vehicle, service, instance
         self.source = f"{service}/{instance}"
+        self.boot = time.time_ns()
         self.health = Health()
         self.config_dict = config_dict or {}
-        self.session: zenoh.Session | None = None
+        self.transport: Transport | None = None
+        self.heartbeat_s, self.deadline_s = heartbeat_s, deadline_s
+        self.role = ""
+        self.detail = ""
         self._keep: list[Any] = []
         self._token = None
+        self._status = "starting"
+        self._progress_wall = time.monotonic()
+        self._stamp = 0.0
+        self._episode = 0
+        self._stop_beat = threading.Event()
+        self._beat_thread: threading.Thread | None = None
 
     def __enter__(self) -> Node:
-        self.session = open_session(self.cfg)
+        self.transport = as_transport(self._bus)
         for what, reply in (("health", self.health.as_dict), ("config", lambda: self.config_dict)):
             key = admin_key(self.vehicle, self.service, self.instance, what)
-            self._keep.append(self.session.declare_queryable(
-                key, lambda q, key=key, reply=reply: q.reply(key, json.dumps(reply()))))
+            self._keep.append(self.transport.queryable(
+                key, lambda k, key=key, reply=reply: [(key, json.dumps(reply()).encode())]))
+        self._beats = TypedPublisher(self.transport, heartbeat_key(self.vehicle, self.service),
+                                     Heartbeat, Stamper(self.source, self.boot), Health())
+        self._beat_thread = threading.Thread(target=self._beat_loop, daemon=True,
+                                             name=f"{self.service}-heartbeat")
+        self._beat_thread.start()
         return self
 
     def __exit__(self, *exc: object) -> None:
-        if self.session is not None:
-            self.session.close()
-            self.session = None
+        self._stop_beat.set()
+        if self._beat_thread is not None:
+            self._beat_thread.join(timeout=1.0)
+        if self.transport is not None:
+            try:
+                self._status = "stopping"
+                self._beat()
+            except Exception:             # the session may be closing under us
+                pass
+            self.transport.close()
+            self.transport = None
 
+    # heartbeat --------------------------------------------------------------
+    def progress(self, stamp: float | None = None, episode: int | None = None) -> None:
+        """The main loop is alive (call it every iteration), working at sim time `stamp`."""
+        self._progress_wall = time.monotonic()
+        if stamp is not None:
+            self._stamp = float(stamp)
+        if episode is not None:
+            self._episode = int(episode)
+
+    def _beat(self) -> None:
+        status = self._status
+        if status == "ready" and time.monotonic() - self._progress_wall > self.deadline_s:
+            status = "stalled"
+        self._beats.publish(self._stamp, episode=self._episode, status=status, role=self.role,
+                            deadline_s=self.deadline_s, detail=self.detail)
+
+    def _beat_loop(self) -> None:
+        while not self._stop_beat.wait(self.heartbeat_s):
+            try:
+                self._beat()
+            except Exception as exc:      # never let the beat kill the service
+                log.debug("heartbeat not sent: %s", exc)
+
+    # topics -----------------------------------------------------------------
     def key(self, topic: str) -> str:
         return topic_key(self.vehicle, topic)
 
-    def subscribe(self, topic: str, cls: type[M], maxlen: int = 1) -> Inbox[M]:
-        assert self.session is not None
-        inbox: Inbox[M] = Inbox(cls, self.key(topic), self.health, maxlen)
-        self._keep.append(self.session.declare_subscriber(
-            inbox.key, lambda s: inbox.on_payload(s.payload.to_bytes())))
+    def subscribe(self, topic: str, cls: type[M], maxlen: int = 1, recover: bool = False,
+                  key: str | None = None) -> Inbox[M]:
+        """An inbox of `topic` (its key, or `key`: a key expression such as every
+        heartbeat's)."""
+        assert self.transport is not None
+        inbox: Inbox[M] = Inbox(cls, key or self.key(topic), self.health, maxlen)
+        self._keep.append(self.transport.subscriber(
+            inbox.key, lambda _k, payload: inbox.on_payload(payload), recover=recover,
+            on_miss=lambda src, n: self.health.missed.update({f"{topic} {src}": n})))
         return inbox
 
-    def publisher(self, topic: str, cls: type[M], express: bool = False) -> TypedPublisher[M]:
-        assert self.session is not None
-        return TypedPublisher(self.session, self.key(topic), cls, self.source, self.health,
-                              express)
+    def publisher(self, topic: str, cls: type[M], express: bool = False, drop: bool = False,
+                  cache: int = 0) -> TypedPublisher[M]:
+        assert self.transport is not None
+        return TypedPublisher(self.transport, self.key(topic), cls,
+                              Stamper(self.source, self.boot), self.health, express, drop, cache)
+
+    def reject(self, topic: str, reason: str, msg: Message | None = None) -> None:
+        """Count a rejected input (its reason in health) with one log line."""
+        detail = "" if msg is None else (f"from {msg.header.source} seq {msg.header.seq} "
+                                         f"stamp {msg.header.stamp:.3f}")
+        self.health.count_rejected(topic, reason, detail)
+        log.warning("rejected a %s message: %s %s", topic, reason, detail)
+
+    # latest values ------------------------------------------------------------
+    def hold(self, topic: str, latest: Callable[[], bytes | None]) -> None:
+        """Answer queries for the newest `topic` message this instance holds (its own
+        output, or an input it accepted): what a restarted service asks for."""
+        assert self.transport is not None
+        key = latest_key(self.vehicle, self.service, self.instance, topic)
+
+        def answer(_key: str) -> list[tuple[str, bytes]]:
+            payload = latest()
+            return [] if payload is None else [(key, payload)]
+        self._keep.append(self.transport.queryable(key, answer))
+
+    def query_latest(self, topic: str, cls: type[M], timeout: float = 1.0) -> list[M]:
+        """The newest `topic` message held by each instance on the bus that answers (valid
+        ones only), oldest first by (episode, stamp)."""
+        assert self.transport is not None
+        found = []
+        for key, payload in self.transport.query(latest_key(self.vehicle, "*", "*", topic),
+                                                 timeout):
+            if not key.endswith(f"/latest/{topic}"):
+                continue
+            try:
+                found.append(decode(payload, cls))
+            except DecodeError as exc:
+                log.warning("a latest %s from %s is not valid: %s", topic, key, exc)
+        return sorted(found, key=lambda m: (m.header.episode, m.header.stamp))
 
     def ready(self) -> None:
         """Raise this instance's liveliness token: the service is up and warmed."""
-        assert self.session is not None
-        self._token = self.session.liveliness().declare_token(
-            alive_key(self.vehicle, self.service, self.instance))
+        assert self.transport is not None
+        self._token = self.transport.token(alive_key(self.vehicle, self.service, self.instance))
+        self._status = "ready"
+        self.progress()
 
 
-def alive_instances(session: zenoh.Session, vehicle: str) -> list[tuple[str, str]]:
+def alive_instances(transport: Transport, vehicle: str) -> list[tuple[str, str]]:
     """(service, instance) of every liveliness token up under this vehicle."""
     out = []
-    for reply in session.liveliness().get(alive_key(vehicle), timeout=2.0):
-        if reply.ok is not None:
-            parts = str(reply.ok.key_expr).split("/")
-            out.append((parts[3], parts[4]))
+    for key in transport.tokens(alive_key(vehicle), timeout=2.0):
+        parts = key.split("/")
+        out.append((parts[3], parts[4]))
     return out
 
 
-def query_json(session: zenoh.Session, key: str, timeout: float = 2.0) -> list[Any]:
+def query_json(transport: Transport, key: str, timeout: float = 2.0) -> list[Any]:
     """Answers of a queryable, parsed as JSON."""
-    out = []
-    for reply in session.get(key, timeout=timeout):
-        if reply.ok is not None:
-            out.append(json.loads(reply.ok.payload.to_bytes()))
-    return out
+    return [json.loads(payload) for _, payload in transport.query(key, timeout)]

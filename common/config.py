@@ -76,8 +76,11 @@ class VehicleConfig:
 class PlantConfig:
     rate_hz: float = _rng(1.0, 1000.0)
     cmd_timeout_s: float = _rng(0.0, lo_open=True)
+    perception_timeout_s: float = _rng(0.0, lo_open=True)
     obstacle_height_m: float = _rng(0.0, lo_open=True)
     lockstep_wait_s: float = _rng(0.0, lo_open=True)
+    reoffer_s: float = _rng(0.0, lo_open=True)
+    authority: str = _rng()
 
 
 @dataclass(frozen=True)
@@ -171,6 +174,13 @@ class BusConfig:
 
 
 @dataclass(frozen=True)
+class SupervisionConfig:
+    heartbeat_period_s: float = _rng(0.0, lo_open=True)
+    heartbeat_deadline_s: float = _rng(0.0, lo_open=True)
+    restarts: int = _rng(0, 100)
+
+
+@dataclass(frozen=True)
 class Config:
     episode: EpisodeConfig
     vehicle: VehicleConfig
@@ -179,6 +189,7 @@ class Config:
     mapper: MapperConfig
     planner: PlannerConfig
     bus: BusConfig
+    supervision: SupervisionConfig
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
         return {s.name: {k: (list(v) if isinstance(v, tuple) else v)
@@ -193,6 +204,7 @@ class Config:
 _SECTION_TYPES = {
     "episode": EpisodeConfig, "vehicle": VehicleConfig, "plant": PlantConfig,
     "sensor": SensorConfig, "mapper": MapperConfig, "planner": PlannerConfig, "bus": BusConfig,
+    "supervision": SupervisionConfig,
 }
 
 
@@ -301,6 +313,14 @@ def _check_cross(cfg: Config) -> None:
         raise ConfigError("vehicle.dynamic_above_mps must exceed vehicle.kinematic_below_mps")
     if p.splat_size % 2 != 1:
         raise ConfigError("planner.splat_size must be odd (a kernel centred on its cell)")
+    m = cfg.mapper
+    if not m.known_variance < m.prior_variance or not m.min_variance < m.prior_variance:
+        raise ConfigError("mapper.known_variance and mapper.min_variance must be below "
+                          "mapper.prior_variance (an observed cell is one below the prior)")
+    sv = cfg.supervision
+    if sv.heartbeat_deadline_s <= sv.heartbeat_period_s:
+        raise ConfigError("supervision.heartbeat_deadline_s must exceed "
+                          "supervision.heartbeat_period_s")
     if p.visibility_max_m <= p.visibility_min_m:
         raise ConfigError("planner.visibility_max_m must exceed planner.visibility_min_m")
     b = cfg.bus

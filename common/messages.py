@@ -3,17 +3,18 @@
 Every message is a frozen dataclass with a `header` and typed fields. On the
 wire it is one msgpack map::
 
-    {"schema": "vamppi.State", "version": 2, "header": {...}, <fields>...}
+    {"schema": "vamppi.State", "version": 3, "header": {...}, <fields>...}
 
 NumPy arrays travel as ``{"dtype": "<f4", "shape": [..], "pad": <bytes>, "data": <bytes>}``
 (``pad``: 0-15 zero bytes that start ``data`` on a 16-byte boundary of the payload,
-so that the arrays a receiver gets are aligned views; version 1 had no ``pad`` and
-is still read): decoding is exact (the float32 that leaves is the float32 that
-arrives) and never casts; arrays are copied once on the way out and not at all on the way in
-(common.wire). `decode` validates schema name and version, every field's type,
-every array's dtype and shape (named dimensions must agree across fields) and
-finiteness where the schema requires it, and raises `DecodeError` naming the
-field.
+so that the arrays a receiver gets are aligned views; version 1 had no ``pad`` and is
+still read; version 3 added the header's `boot` and `episode` and a few fields, which
+older payloads lack and decode to their documented defaults): decoding is exact (the
+float32 that leaves is the float32 that arrives) and never casts; arrays are copied once
+on the way out and not at all on the way in (common.wire). `decode` validates schema name
+and version, every field's type, every array's dtype and shape (named dimensions must
+agree across fields) and finiteness where the schema requires it, and raises
+`DecodeError` naming the field.
 """
 
 from __future__ import annotations
@@ -42,25 +43,41 @@ class ArraySpec:
     nonneg: bool = False
 
 
+# `since`: the message version that added the field; a payload of an older version has
+# none and decodes to `older` (a value, or a callable for arrays), which is also the
+# field's default when a message is built without it
+def _field(meta: dict[str, Any], since: int, older: Any) -> Any:
+    meta = {**meta, "since": since, "older": older}
+    if since == 1:
+        return field(metadata=meta)
+    if callable(older):
+        return field(default_factory=older, metadata=meta)
+    return field(default=older, metadata=meta)
+
+
 def array(dtype: str, shape: tuple[int | str, ...], *, finite: bool = True,
-          nonneg: bool = False) -> Any:
-    return field(metadata={"kind": ArraySpec(dtype, shape, finite, nonneg)})
+          nonneg: bool = False, since: int = 1, older: Any = None) -> Any:
+    return _field({"kind": ArraySpec(dtype, shape, finite, nonneg)}, since, older)
 
 
-def number(*, finite: bool = True) -> Any:
-    return field(metadata={"kind": "float", "finite": finite})
+def number(*, finite: bool = True, since: int = 1, older: Any = None) -> Any:
+    return _field({"kind": "float", "finite": finite}, since, older)
 
 
-def integer(*, nonneg: bool = True) -> Any:
-    return field(metadata={"kind": "int", "nonneg": nonneg})
+def integer(*, nonneg: bool = True, since: int = 1, older: Any = None) -> Any:
+    return _field({"kind": "int", "nonneg": nonneg}, since, older)
 
 
-def text() -> Any:
-    return field(metadata={"kind": "str"})
+def text(*, since: int = 1, older: Any = None) -> Any:
+    return _field({"kind": "str"}, since, older)
+
+
+def flag(*, since: int = 1, older: Any = None) -> Any:
+    return _field({"kind": "bool"}, since, older)
 
 
 def floats_by_name() -> Any:
-    return field(metadata={"kind": "dict_float"})
+    return field(metadata={"kind": "dict_float", "since": 1, "older": None})
 
 
 # ----------------------------------------------------------------------------- header
@@ -74,19 +91,23 @@ class InputRef:
 
 @dataclass(frozen=True)
 class Header:
-    seq: int                  # per publisher, gap-free, from 0
+    seq: int                  # per publisher (source and boot), gap-free, from 0
     stamp: float              # simulation time, s
     wall_time: float          # publish wall time, s since the epoch
     source: str               # publishing instance, "<service>/<instance>"
     inputs: tuple[InputRef, ...] = ()
+    boot: int = 0             # the publishing process's start (ns since the epoch): a restarted
+                              # instance is a new boot, its seq starts again at 0 (v3; 0 before)
+    episode: int = 0          # the episode the message belongs to: the plant names it when it
+                              # starts one, every message computed from it carries it on (v3)
 
 
 # ----------------------------------------------------------------------------- messages
 @dataclass(frozen=True)
 class Message:
     SCHEMA: ClassVar[str] = ""
-    VERSION: ClassVar[int] = 2                       # 2: arrays carry `pad`
-    VERSIONS_READ: ClassVar[tuple[int, ...]] = (1, 2)
+    VERSION: ClassVar[int] = 3          # 2: arrays carry `pad`; 3: header boot, episode
+    VERSIONS_READ: ClassVar[tuple[int, ...]] = (1, 2, 3)
     header: Header
 
 
@@ -98,7 +119,10 @@ class State(Message):
     z: float = number()                  # ground elevation under the CG, m
     u_applied: np.ndarray = array("<f8", (2,))   # [delta, f_xt] applied now
     tick: int = integer()                # control tick index
-    authority: str = text()              # planner instance whose commands the plant takes
+    authority: str = text()              # the planner instance the plant obeys ("" before one)
+    epoch: int = integer(since=3, older=0)       # the authority's generation: +1 at each change
+    outcome: str = text(since=3, older="")       # "" while the episode runs, then its outcome
+    goal_region: bool = flag(since=3, older=False)   # the vehicle has been within the goal radius
 
 
 @dataclass(frozen=True)
@@ -108,6 +132,9 @@ class Cmd(Message):
     t0: float = number()
     dt: float = number()
     controls: np.ndarray = array("<f4", ("N", 2))
+    # the planner's sampler state after this solve (a JAX PRNG key's data): with `controls`,
+    # which is its nominal, all that its next solve starts from (a restart, a successor)
+    rng: np.ndarray = array("<u4", (2,), since=3, older=lambda: np.zeros(2, "<u4"))
 
 
 @dataclass(frozen=True)
@@ -155,7 +182,8 @@ class Stats(Message):
 
 @dataclass(frozen=True)
 class Event(Message):
-    """collision | goal | timeout | stopping (outcomes), start, stale, authority, error."""
+    """Outcomes (success | collision | stopping | timeout | aborted) and what happened on the
+    way: start, resume, authority, degraded, recovered (services.plant.protocol)."""
     SCHEMA: ClassVar[str] = "vamppi.Event"
     kind: str = text()
     outcome: str = text()                # "" until the episode ends
@@ -170,8 +198,20 @@ class Clock(Message):
     mode: str = text()
 
 
+@dataclass(frozen=True)
+class Heartbeat(Message):
+    """An instance's beat: its main loop is alive and has made progress (common.supervision).
+    The header's stamp is the newest simulation time it has worked on."""
+    SCHEMA: ClassVar[str] = "vamppi.Heartbeat"
+    status: str = text()                 # starting | ready | stalled | stopping
+    role: str = text()                   # what the instance does: "" or, for planners, active |
+                                         # standby | shadow
+    deadline_s: float = number()         # the next beat comes within this, or count it dead
+    detail: str = text()
+
+
 MESSAGE_TYPES: dict[str, type[Message]] = {
-    cls.SCHEMA: cls for cls in (State, Cmd, Depth, Map, Plan, Stats, Event, Clock)}
+    cls.SCHEMA: cls for cls in (State, Cmd, Depth, Map, Plan, Stats, Event, Clock, Heartbeat)}
 
 M = TypeVar("M", bound=Message)
 
@@ -182,6 +222,8 @@ def _encode_value(kind: Any, value: Any) -> Any:
         return float(value)
     if kind == "int":
         return int(value)
+    if kind == "bool":
+        return bool(value)
     if kind == "dict_float":
         return {str(k): float(v) for k, v in value.items()}
     return value
@@ -221,7 +263,8 @@ def encode(msg: Message) -> bytes:
     layout = _layout(type(msg))
     chunks: list[Any] = [layout.prefix, msgpack.packb(
         {"seq": int(h.seq), "stamp": float(h.stamp), "wall_time": float(h.wall_time),
-         "source": h.source, "inputs": [[i.key, int(i.seq), float(i.stamp)] for i in h.inputs]})]
+         "source": h.source, "inputs": [[i.key, int(i.seq), float(i.stamp)] for i in h.inputs],
+         "boot": int(h.boot), "episode": int(h.episode)})]
     pos = len(chunks[0]) + len(chunks[1])             # bytes written so far
     for name, kind, key in layout.fields:
         value = getattr(msg, name)
@@ -249,18 +292,29 @@ def _is_num(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
-def _decode_header(schema: str, raw: Any) -> Header:
+def _count(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and v >= 0
+
+
+_HEADER_CHECKS = (("seq", _count), ("stamp", lambda v: _is_num(v) and math.isfinite(v)),
+                  ("wall_time", lambda v: _is_num(v) and math.isfinite(v)),
+                  ("source", lambda v: isinstance(v, str)),
+                  ("inputs", lambda v: isinstance(v, list)))
+_HEADER_CHECKS_V3 = (*_HEADER_CHECKS, ("boot", _count), ("episode", _count))
+
+
+def _decode_header(schema: str, raw: Any, version: int = Message.VERSION) -> Header:
     if not isinstance(raw, dict):
         raise _fail(schema, "header", "must be a map")
-    for key, ok in (("seq", lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0),
-                    ("stamp", lambda v: _is_num(v) and math.isfinite(v)),
-                    ("wall_time", lambda v: _is_num(v) and math.isfinite(v)),
-                    ("source", lambda v: isinstance(v, str)),
-                    ("inputs", lambda v: isinstance(v, list))):
+    checks = _HEADER_CHECKS_V3 if version >= 3 else _HEADER_CHECKS
+    for key, ok in checks:
         if key not in raw:
             raise _fail(schema, f"header.{key}", "is missing")
         if not ok(raw[key]):
             raise _fail(schema, f"header.{key}", f"has a bad value {raw[key]!r:.60}")
+    extra = set(raw) - {k for k, _ in checks}
+    if extra:
+        raise _fail(schema, f"header.{sorted(extra)[0]}", "is not in the schema")
     inputs = []
     for i, ref in enumerate(raw["inputs"]):
         if not (isinstance(ref, list) and len(ref) == 3 and isinstance(ref[0], str)
@@ -268,7 +322,7 @@ def _decode_header(schema: str, raw: Any) -> Header:
             raise _fail(schema, f"header.inputs[{i}]", "must be [key, seq, stamp]")
         inputs.append(InputRef(ref[0], ref[1], float(ref[2])))
     return Header(raw["seq"], float(raw["stamp"]), float(raw["wall_time"]), raw["source"],
-                  tuple(inputs))
+                  tuple(inputs), raw.get("boot", 0), raw.get("episode", 0))
 
 
 def _decode_array(schema: str, name: str, spec: ArraySpec, raw: Any,
@@ -348,14 +402,19 @@ def decode(payload: bytes, expected: type[M] | None = None) -> M:
         raise DecodeError(f"unknown schema {schema!r:.60}")
     if expected is not None and cls is not expected:
         raise DecodeError(f"{schema}: expected a {expected.SCHEMA} message")
-    if raw.get("version") not in cls.VERSIONS_READ:
-        raise _fail(schema, "version", f"is {raw.get('version')!r}, expected one of "
+    version = raw.get("version")
+    if version not in cls.VERSIONS_READ:
+        raise _fail(schema, "version", f"is {version!r}, expected one of "
                     f"{cls.VERSIONS_READ}")
-    kwargs: dict[str, Any] = {"header": _decode_header(schema, raw.get("header"))}
+    kwargs: dict[str, Any] = {"header": _decode_header(schema, raw.get("header"), version)}
     dims: dict[str, int] = {}
     known = {"schema", "version", "header"}
     for f in dataclasses.fields(cls):
         if f.name == "header":
+            continue
+        if f.metadata["since"] > version:           # an older message: the documented default
+            older = f.metadata["older"]
+            kwargs[f.name] = older() if callable(older) else older
             continue
         known.add(f.name)
         if f.name not in raw:
@@ -375,6 +434,9 @@ def decode(payload: bytes, expected: type[M] | None = None) -> M:
         elif kind == "str":
             if not isinstance(v, str):
                 raise _fail(schema, f.name, f"must be a string, got {type(v).__name__}")
+        elif kind == "bool":
+            if not isinstance(v, bool):
+                raise _fail(schema, f.name, f"must be true or false, got {v!r:.60}")
         elif kind == "dict_float":
             if not (isinstance(v, dict) and all(isinstance(k, str) and _is_num(x)
                                                 for k, x in v.items())):
@@ -395,7 +457,9 @@ def peek(payload: bytes) -> tuple[str, Header]:
     raw = _read(payload)
     if not isinstance(raw, dict) or not isinstance(raw.get("schema"), str):
         raise DecodeError("not a message: no schema name")
-    return raw["schema"], _decode_header(raw["schema"], raw.get("header"))
+    version = raw.get("version")
+    return raw["schema"], _decode_header(raw["schema"], raw.get("header"),
+                                         version if isinstance(version, int) else 0)
 
 
 def json_schema(cls: type[Message]) -> dict[str, Any]:
@@ -415,11 +479,13 @@ def json_schema(cls: type[Message]) -> dict[str, Any]:
                                                           "16-byte boundary of the payload"},
                                    "data": {"type": "string", "contentEncoding": "base64"}}}
         return {"float": {"type": "number"}, "int": {"type": "integer", "minimum": 0},
-                "str": {"type": "string"},
+                "str": {"type": "string"}, "bool": {"type": "boolean"},
                 "dict_float": {"type": "object", "additionalProperties": {"type": "number"}},
                 }[kind]
 
-    header = {"type": "object", "required": ["seq", "stamp", "wall_time", "source", "inputs"],
+    header = {"type": "object",
+              "required": ["seq", "stamp", "wall_time", "source", "inputs", "boot", "episode"],
+              "additionalProperties": False,
               "properties": {"seq": {"type": "integer", "minimum": 0},
                              "stamp": {"type": "number", "description": "simulation time, s"},
                              "wall_time": {"type": "number",
@@ -428,7 +494,10 @@ def json_schema(cls: type[Message]) -> dict[str, Any]:
                              "inputs": {"type": "array", "items": {
                                  "type": "array", "prefixItems": [
                                      {"type": "string"}, {"type": "integer"},
-                                     {"type": "number"}]}}}}
+                                     {"type": "number"}]}},
+                             "boot": {"type": "integer", "minimum": 0,
+                                      "description": "publisher process start, ns"},
+                             "episode": {"type": "integer", "minimum": 0}}}
     props: dict[str, Any] = {"schema": {"const": cls.SCHEMA},
                              "version": {"const": cls.VERSION}, "header": header}
     for f in dataclasses.fields(cls):

@@ -322,7 +322,7 @@ def bench_pipeline(cfg: Config, overrides: list[str], samples: list[int],
     from common.bus import Health, Inbox, topic_key
     from common.messages import Event
     from deploy.launch import recording_hook, services_up
-    from services.plant.core import OUTCOMES
+    from services.plant.protocol import OUTCOMES
     cases = []
     for controller in controllers:
         for k in samples:
@@ -415,7 +415,7 @@ def bench_record(cfg: Config, duration_s: float, rates: list[float],
     import tempfile
     from pathlib import Path
 
-    from common.bus import open_session
+    from common.bus import ZenohTransport, open_session
     from deploy.launch import free_port, router_config
     from deploy.recording import Recorder, iter_messages, recording_metadata
     cases = []
@@ -427,7 +427,8 @@ def bench_record(cfg: Config, duration_s: float, rates: list[float],
             out = str(Path(tmp) / f"recorded-{rate}.mcap")
             keys = f"vamppi/{cfg.episode.vehicle}/**"
             with open_session(router_config(port)) as session:
-                rec = Recorder(session, keys, out, recording_metadata(cfg.to_dict(), keys))
+                rec = Recorder(ZenohTransport(session), keys, out,
+                               recording_metadata(cfg.to_dict(), keys))
                 t0 = time.monotonic()
                 r = subprocess.run([sys.executable, "-m", "deploy.cli", "replay", src,
                                     "--rate", str(rate), "--connect", f"tcp/127.0.0.1:{port}",

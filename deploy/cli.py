@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import signal
 import sys
 import threading
@@ -28,7 +29,7 @@ from typing import Any
 from common import compile_cache
 from common.config import Config, ConfigError, load_config
 from common.memory import keep_large_buffers
-from common.process import when_orphaned
+from common.process import PARENT_ENV, die_with_parent, stop_on_signals, when_orphaned
 
 
 def add_config_args(p: argparse.ArgumentParser) -> None:
@@ -94,16 +95,19 @@ SERVICE_MAINS = {
 
 
 def cmd_service(args: argparse.Namespace, cfg: Config) -> int:
+    """One service until its episode ends (the plant) or a signal: SIGINT or SIGTERM stop
+    it within a second whatever it is doing (common.process)."""
     import importlib
-    module = importlib.import_module(SERVICE_MAINS[args.name])
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    stop_on_signals(stop)
     if args.stop_with_parent:
         def parent_gone() -> None:
             logging.getLogger(__name__).warning("parent process gone: stopping")
             stop.set()
+        die_with_parent()
         when_orphaned(parent_gone)
+    os.environ.pop(PARENT_ENV, None)
+    module = importlib.import_module(SERVICE_MAINS[args.name])
     module.main(cfg, args.instance, stop)
     return 0
 
@@ -146,8 +150,7 @@ def cmd_router(args: argparse.Namespace, cfg: Config) -> int:
     from common.bus import open_session
     from common.config import BusConfig
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    stop_on_signals(stop)
     bus = BusConfig("router", cfg.bus.connect, cfg.bus.listen or ("tcp/0.0.0.0:7447",),
                     cfg.bus.multicast_scouting)
     with open_session(bus):
@@ -158,14 +161,17 @@ def cmd_router(args: argparse.Namespace, cfg: Config) -> int:
 
 def cmd_health(args: argparse.Namespace, cfg: Config) -> int:
     """Every live service instance of the vehicle and its health counters, one JSON line each."""
-    from common.bus import admin_key, alive_instances, open_session, query_json
-    with open_session(cfg.bus) as session:
-        found = sorted(alive_instances(session, cfg.episode.vehicle))
+    from common.bus import ZenohTransport, admin_key, alive_instances, query_json
+    bus = ZenohTransport.open(cfg.bus)
+    try:
+        found = sorted(alive_instances(bus, cfg.episode.vehicle))
         for service, instance in found:
-            health = query_json(session, admin_key(cfg.episode.vehicle, service, instance,
-                                                   "health"))
+            health = query_json(bus, admin_key(cfg.episode.vehicle, service, instance,
+                                               "health"))
             print(json.dumps({"service": service, "instance": instance,
                               "health": health[0] if health else None}), flush=True)
+    finally:
+        bus.close()
     if not found:
         print(f"vamppi health: no live service under vehicle {cfg.episode.vehicle!r}",
               file=sys.stderr)
@@ -220,7 +226,7 @@ def cmd_up(args: argparse.Namespace, cfg: Config) -> int:
 
 def cmd_record(args: argparse.Namespace, cfg: Config) -> int:
     """Record every sample under the key expression until Ctrl-C / SIGTERM / --duration."""
-    from common.bus import PREFIX, open_session
+    from common.bus import PREFIX, ZenohTransport, open_session
     from deploy.recording import Recorder, live_service_configs, recording_metadata
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -232,7 +238,8 @@ def cmd_record(args: argparse.Namespace, cfg: Config) -> int:
         services = live_service_configs(session, cfg.episode.vehicle)
         if services:
             meta["services"] = services
-        rec = Recorder(session, keys, args.output, meta, flush_interval_s=args.flush_interval)
+        rec = Recorder(ZenohTransport(session), keys, args.output, meta,
+                       flush_interval_s=args.flush_interval)
         log.info("recording %s to %s (Ctrl-C stops)", keys, args.output)
         stop.wait(args.duration)
         stats = rec.stop()

@@ -64,15 +64,17 @@ class ExperimentError(ValueError):
 
 def config_digest(cfg: Config) -> str:
     """Digest of every parameter that shapes a run except the per-run keys (scenario,
-    controller, samples, seed); the bus and the clock do not matter in-process. The
+    controller, samples, seed); the bus, the clock and the bus protocol's parameters
+    (supervision, re-offers, authority, perception timeout) do not matter in-process. The
     runs of one output directory must share it. The scenario's layout is not in it (it
     came after the digest): each record carries its own (`run_layout`)."""
     d = cfg.to_dict()
     d.pop("bus", None)
-    for section, key in (("episode", "scenario"), ("episode", "seed"), ("episode", "clock"),
-                         ("episode", "layout"),
-                         ("episode", "vehicle"), ("planner", "controller"),
-                         ("planner", "samples")):
+    d.pop("supervision", None)
+    for section, key in (("plant", "perception_timeout_s"), ("plant", "reoffer_s"),
+                         ("plant", "authority"), ("episode", "scenario"), ("episode", "seed"),
+                         ("episode", "clock"), ("episode", "layout"), ("episode", "vehicle"),
+                         ("planner", "controller"), ("planner", "samples")):
         d[section].pop(key, None)
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 

@@ -1,11 +1,19 @@
-"""`vamppi up`: an embedded Zenoh router and every service as its own OS process.
+"""`vamppi up`: an embedded Zenoh router and every service as its own OS process, supervised.
 
-The launcher opens a router session on a free loopback port, starts plant,
-sensor, mapper and planner as `vamppi service NAME --connect tcp/127.0.0.1:PORT`
-subprocesses (each stops when its parent dies: `vamppi service` watches its
-parent), waits until every
-service's liveliness token is up, follows the plant's events until the episode's
-outcome, then stops every child (SIGTERM, then SIGKILL after a grace period).
+The launcher opens a router session on a free loopback port, starts plant, sensor,
+mapper and planner as `vamppi service NAME --connect tcp/127.0.0.1:PORT` subprocesses,
+waits until every service's liveliness token is up, follows the plant's events until
+the episode's outcome, then stops every child (SIGTERM, then SIGKILL after a grace
+period).
+
+Supervision (`Supervisor`): every child's heartbeat is followed. A child that exits, or
+whose beats stop or say `stalled` for longer than the deadline they state (a process
+wedged or stopped: its liveliness token stays up while zenoh's threads run), has failed;
+a failed child is killed and started again, up to `supervision.restarts` times per
+service, and resumes its part of the episode (each service's protocol recovers its
+state from the bus). Past that the launcher gives up: the summary names the service and
+why, and `vamppi up` exits non-zero. Children die with the launcher (the kernel's
+parent-death signal), so `kill -9` of it leaves no process behind.
 """
 
 from __future__ import annotations
@@ -18,14 +26,28 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from typing import Any
 
-from common.bus import PREFIX, SERVICES, Health, Inbox, alive_instances, open_session, topic_key
+from common.bus import (
+    PREFIX,
+    SERVICES,
+    Health,
+    Inbox,
+    ZenohTransport,
+    alive_instances,
+    heartbeat_key,
+    open_session,
+    topic_key,
+)
 from common.config import BusConfig, Config
-from common.messages import Event
-from services.plant.core import OUTCOMES
+from common.messages import DecodeError, Event, Heartbeat, decode
+from common.process import PARENT_ENV
+from common.supervision import FAILED
+from services.plant.protocol import OUTCOMES
 
 log = logging.getLogger(__name__)
 
@@ -41,19 +63,26 @@ def router_config(port: int) -> BusConfig:
                      multicast_scouting=False)
 
 
-def spawn_service(name: str, endpoint: str, overrides: list[str], config_path: str | None,
-                  instance: str = "0", env: dict[str, str] | None = None) -> subprocess.Popen:
-    """`vamppi service NAME` as a subprocess, a client of the router at `endpoint`."""
+def service_command(name: str, endpoint: str, overrides: list[str], config_path: str | None,
+                    instance: str = "0") -> list[str]:
+    """`vamppi service NAME`, a client of the router at `endpoint`, stopping with its
+    parent."""
     cmd = [sys.executable, "-m", "deploy.cli", "service", name, "--instance", instance,
            "--stop-with-parent"]
     if config_path:
         cmd += ["--config", config_path]
     for o in overrides:
         cmd += ["--set", o]
-    cmd += ["--set", 'bus.mode="client"', "--set", f"bus.connect={json.dumps([endpoint])}",
-            "--set", "bus.listen=[]"]
-    return subprocess.Popen(cmd, stdout=sys.stderr, stderr=sys.stderr, stdin=subprocess.DEVNULL,
-                            env={**os.environ, **(env or {})})
+    return cmd + ["--set", 'bus.mode="client"', "--set", f"bus.connect={json.dumps([endpoint])}",
+                  "--set", "bus.listen=[]"]
+
+
+def spawn_service(name: str, endpoint: str, overrides: list[str], config_path: str | None,
+                  instance: str = "0", env: dict[str, str] | None = None) -> subprocess.Popen:
+    """`vamppi service NAME` as a subprocess (`service_command`)."""
+    return subprocess.Popen(service_command(name, endpoint, overrides, config_path, instance),
+                            stdout=sys.stderr, stderr=sys.stderr, stdin=subprocess.DEVNULL,
+                            env={**os.environ, PARENT_ENV: str(os.getpid()), **(env or {})})
 
 
 def stop_all(procs: dict[str, subprocess.Popen], grace_s: float = 5.0) -> None:
@@ -69,13 +98,112 @@ def stop_all(procs: dict[str, subprocess.Popen], grace_s: float = 5.0) -> None:
             p.wait()
 
 
+# ----------------------------------------------------------------------------- supervision
+@dataclass(frozen=True)
+class ChildView:
+    """What the supervisor knows of one child process: when it started, its exit code, its
+    newest beat (status, deadline, monotonic receive time)."""
+    started: float
+    exit_code: int | None
+    beat_status: str = ""
+    beat_deadline_s: float = 0.0
+    beat_at: float | None = None
+
+
+def judge(child: ChildView, now: float, ready_timeout_s: float) -> str:
+    """Why the child has failed, or '' while it is well: it exited, it is not ready in
+    time, or its beats stopped or say it failed for longer than their deadline."""
+    if child.exit_code is not None:
+        return f"exited with code {child.exit_code}"
+    if child.beat_at is None or child.beat_status == "starting":
+        if now - child.started > ready_timeout_s:
+            return f"not ready after {ready_timeout_s:.0f} s"
+        return ""
+    late = now - child.beat_at
+    if child.beat_status in FAILED:
+        return f"heartbeat says {child.beat_status}"
+    if late > child.beat_deadline_s:
+        return f"no heartbeat for {late:.2f} s (deadline {child.beat_deadline_s:.2f} s)"
+    return ""
+
+
+class Supervisor:
+    """The children of `vamppi up`, watched and restarted (module docstring)."""
+
+    def __init__(self, endpoint: str, overrides: list[str], config_path: str | None,
+                 services: tuple[str, ...], restarts: int, ready_timeout_s: float,
+                 env: dict[str, str] | None = None):
+        self.endpoint, self.overrides, self.config_path = endpoint, overrides, config_path
+        self.max_restarts, self.ready_timeout_s, self.env = restarts, ready_timeout_s, env
+        self.procs: dict[str, subprocess.Popen] = {}
+        self.restarts: dict[str, int] = {}
+        self.failures: list[dict[str, Any]] = []
+        self._started: dict[str, tuple[float, int]] = {}      # monotonic, time_ns
+        self._beats: dict[str, tuple[str, float, float]] = {}  # status, deadline, at
+        self._lock = threading.Lock()
+        for name in services:
+            self._spawn(name)
+
+    def _spawn(self, name: str) -> None:
+        with self._lock:
+            self._started[name] = (time.monotonic(), time.time_ns())
+            self._beats.pop(name, None)
+        self.procs[name] = spawn_service(name, self.endpoint, self.overrides, self.config_path,
+                                         env=self.env)
+
+    def on_beat(self, hb: Heartbeat) -> None:
+        """A heartbeat from the bus: kept if it is the newest process of a child's."""
+        name = hb.header.source.split("/")[0]
+        with self._lock:
+            started = self._started.get(name)
+            if started is not None and hb.header.boot >= started[1]:
+                self._beats[name] = (hb.status, hb.deadline_s, time.monotonic())
+
+    def view(self, name: str) -> ChildView:
+        with self._lock:
+            status, deadline, at = self._beats.get(name, ("", 0.0, None))
+            started = self._started[name][0]
+        return ChildView(started, self.procs[name].poll(), status, deadline, at)
+
+    def check(self, expected_exit: Callable[[str], bool] = lambda name: False
+              ) -> dict[str, Any] | None:
+        """Restart every failed child (an exit `expected_exit` allows is none); the failure
+        that exhausted its service's restarts, if one did."""
+        now = time.monotonic()
+        for name in list(self.procs):
+            child = self.view(name)
+            why = judge(child, now, self.ready_timeout_s)
+            if not why or (child.exit_code == 0 and expected_exit(name)):
+                continue
+            beat_age = None if child.beat_at is None else round(now - child.beat_at, 3)
+            failure = {"service": name, "why": why, "last_beat_s_ago": beat_age,
+                       "restarts": self.restarts.get(name, 0)}
+            self.failures.append(failure)
+            proc = self.procs[name]
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+            if self.restarts.get(name, 0) >= self.max_restarts:
+                log.error("vamppi up: %s", json.dumps({"gave_up": failure}))
+                return failure
+            self.restarts[name] = self.restarts.get(name, 0) + 1
+            log.warning("vamppi up: %s", json.dumps({"restarting": failure}))
+            self._spawn(name)
+        return None
+
+    def stop(self) -> None:
+        stop_all(self.procs)
+
+
 @contextlib.contextmanager
 def services_up(cfg: Config, overrides: list[str], config_path: str | None = None,
                 services: tuple[str, ...] = SERVICES, ready_timeout_s: float = 300.0,
                 subscriptions: dict[str, Callable[[Any], None]] | None = None,
-                on_session: Callable[[Any], Callable[[], None]] | None = None
-                ) -> Iterator[tuple[Any, str, dict[str, subprocess.Popen]]]:
-    """Router + the named services, ready (every token up). Yields (session, endpoint, procs).
+                on_session: Callable[[Any], Callable[[], None]] | None = None,
+                restarts: int = 0, env: dict[str, str] | None = None
+                ) -> Iterator[tuple[Any, str, Supervisor]]:
+    """Router + the named services, ready (every token up). Yields (session, endpoint,
+    supervisor); `restarts` per service are allowed before a failure is final.
 
     `subscriptions` (key -> callback) are declared on the router's session before
     any service starts, so nothing the services publish is missed; so is
@@ -88,24 +216,30 @@ def services_up(cfg: Config, overrides: list[str], config_path: str | None = Non
         for key, callback in (subscriptions or {}).items():
             session.declare_subscriber(key, callback)
         finish = on_session(session) if on_session is not None else None
-        procs = {name: spawn_service(name, endpoint, overrides, config_path) for name in services}
+        sup = Supervisor(endpoint, overrides, config_path, services, restarts, ready_timeout_s,
+                         env)
+
+        def on_beat(_key: str, payload: bytes) -> None:
+            try:
+                sup.on_beat(decode(payload, Heartbeat))
+            except DecodeError as exc:
+                log.warning("an undecodable heartbeat: %s", exc)
+
+        beats = ZenohTransport(session).subscriber(heartbeat_key(cfg.episode.vehicle), on_beat)
         try:
-            deadline = time.monotonic() + ready_timeout_s
             while True:
-                up = {s for s, _ in alive_instances(session, cfg.episode.vehicle)}
+                up = {s for s, _ in alive_instances(ZenohTransport(session), cfg.episode.vehicle)}
                 if all(s in up for s in services):
                     break
-                dead = [n for n, p in procs.items() if p.poll() is not None]
-                if dead:
-                    raise RuntimeError(f"service(s) exited before ready: {', '.join(dead)}")
-                if time.monotonic() > deadline:
-                    missing = sorted(set(services) - up)
-                    raise TimeoutError(f"services not ready after {ready_timeout_s:.0f} s: "
-                                       f"{', '.join(missing)}")
+                failure = sup.check()
+                if failure is not None:
+                    raise RuntimeError(f"{failure['service']} {failure['why']} before it was "
+                                       "ready")
                 time.sleep(0.1)
-            yield session, endpoint, procs
+            yield session, endpoint, sup
         finally:
-            stop_all(procs)
+            sup.stop()
+            beats.undeclare()
             if finish is not None:
                 finish()
 
@@ -118,7 +252,8 @@ def recording_hook(cfg: Config, path: str, summary: dict[str, Any]
 
     def start(session: Any) -> Callable[[], None]:
         keys = f"{PREFIX}/{cfg.episode.vehicle}/**"
-        rec = Recorder(session, keys, path, recording_metadata(cfg.to_dict(), keys))
+        rec = Recorder(ZenohTransport(session), keys, path,
+                       recording_metadata(cfg.to_dict(), keys))
         log.info("recording %s to %s", keys, path)
 
         def finish() -> None:
@@ -133,41 +268,50 @@ def recording_hook(cfg: Config, path: str, summary: dict[str, Any]
 
 def up(cfg: Config, overrides: list[str], config_path: str | None = None,
        timeout_s: float = 900.0, record: str | None = None) -> dict[str, Any]:
-    """Run one episode across processes (recorded to `record` if given); returns the
-    summary record."""
+    """Run one episode across processes (recorded to `record` if given), supervised;
+    returns the summary record."""
     summary: dict[str, Any] = {
         "scenario": cfg.episode.scenario, "controller": cfg.planner.controller,
         "samples": cfg.planner.samples, "seed": cfg.episode.seed, "outcome": "error",
-        "time_to_goal_s": None, "sim_time_s": None, "wall_time_s": None}
+        "time_to_goal_s": None, "sim_time_s": None, "wall_time_s": None, "restarts": {},
+        "failure": None}
     events = Inbox(Event, topic_key(cfg.episode.vehicle, "events"), Health(), maxlen=1024)
     wall0 = time.monotonic()
     try:
         with services_up(cfg, overrides, config_path, subscriptions={
                 events.key: lambda s: events.on_payload(s.payload.to_bytes())},
-                on_session=recording_hook(cfg, record, summary) if record else None
-                ) as (_, _, procs):
+                on_session=recording_hook(cfg, record, summary) if record else None,
+                restarts=cfg.supervision.restarts) as (_, _, sup):
             log.info("all services up after %.1f s", time.monotonic() - wall0)
             start_wall = None
             deadline = time.monotonic() + timeout_s
+            ended_at = None
             while time.monotonic() < deadline:
-                ev = events.get(timeout=0.5)
-                if ev is None:
-                    dead = [n for n, p in procs.items() if p.poll() is not None]
-                    if dead:
-                        log.error("service(s) exited during the episode: %s", ", ".join(dead))
-                        break
-                    continue
-                if ev.kind == "start":
+                ev = events.get(timeout=0.1)
+                if ev is not None and ev.kind == "start":
                     start_wall = time.monotonic()
-                if ev.kind in OUTCOMES:
+                if ev is not None and ev.kind in OUTCOMES:
                     summary.update(outcome=ev.kind, sim_time_s=round(ev.header.stamp, 6),
                                    time_to_goal_s=None if ev.kind != "success"
                                    else round(ev.time_to_goal_s, 6),
                                    wall_time_s=round(time.monotonic() - (start_wall or wall0), 3))
                     break
+                if sup.procs["plant"].poll() == 0:      # the plant ends with its episode
+                    ended_at = ended_at or time.monotonic()
+                    if time.monotonic() - ended_at > 5.0:
+                        summary["failure"] = {"service": "plant", "why": "the episode ended "
+                                              "but its outcome event never arrived"}
+                        break
+                failure = sup.check(expected_exit=lambda name: name == "plant")
+                summary["restarts"] = dict(sup.restarts)
+                if failure is not None:
+                    summary["failure"] = failure
+                    break
             else:
                 log.error("no outcome after %.0f s wall", timeout_s)
+                summary["failure"] = {"service": None, "why": f"no outcome after "
+                                                              f"{timeout_s:.0f} s wall"}
     except (RuntimeError, TimeoutError) as exc:
         log.error("%s", exc)
+        summary["failure"] = {"service": None, "why": str(exc)}
     return summary
-

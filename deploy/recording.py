@@ -23,7 +23,6 @@ record by record) gives every message of the complete chunks.
 from __future__ import annotations
 
 import collections
-import dataclasses
 import json
 import logging
 import os
@@ -32,7 +31,7 @@ import subprocess
 import threading
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from importlib import metadata as importlib_metadata
 from pathlib import Path
 from typing import IO, Any
@@ -42,7 +41,9 @@ from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
+from common.bus import CACHED
 from common.messages import MESSAGE_TYPES, DecodeError, json_schema, peek
+from common.protocol import SeqTrack
 
 log = logging.getLogger(__name__)
 
@@ -105,30 +106,6 @@ def live_service_configs(session: Any, vehicle: str, timeout_s: float = 2.0
 
 
 # ----------------------------------------------------------------------------- writer
-@dataclass
-class PublisherSeq:
-    """Seq bookkeeping of one publisher on one key."""
-    count: int = 0
-    first: int = -1
-    last: int = -1
-    missing: int = 0                          # seqs skipped (a gap of 3 counts 3)
-    gaps: list[tuple[int, int]] = field(default_factory=list)   # first few (from, to)
-    backwards: int = 0                        # seq went down: a restart or reordering
-
-    def see(self, seq: int) -> None:
-        if self.count and seq != self.last + 1:
-            if seq > self.last + 1:
-                self.missing += seq - self.last - 1
-                if len(self.gaps) < 20:
-                    self.gaps.append((self.last + 1, seq - 1))
-            else:
-                self.backwards += 1
-        if not self.count:
-            self.first = seq
-        self.count += 1
-        self.last = seq
-
-
 class RecordingWriter:
     """Writes bus samples into an MCAP file (no bus here: `Recorder` feeds it).
 
@@ -149,8 +126,8 @@ class RecordingWriter:
         self._dirty = False
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
-        self.publishers: dict[tuple[str, str], PublisherSeq] = collections.defaultdict(
-            PublisherSeq)
+        self.publishers: dict[tuple[str, str, int], SeqTrack] = collections.defaultdict(
+            SeqTrack)
         self.messages = 0
         self.undecodable = 0
         self.bytes = 0
@@ -175,7 +152,7 @@ class RecordingWriter:
         try:
             schema, header = peek(payload)
             publish_ns, seq = int(header.wall_time * 1e9), header.seq
-            self.publishers[(key, header.source)].see(seq)
+            self.publishers[(key, header.source, header.boot)].see(seq)
         except DecodeError as exc:
             schema, publish_ns, seq = None, log_time_ns, 0
             self.undecodable += 1
@@ -198,12 +175,13 @@ class RecordingWriter:
         self._dirty = False
 
     def summary(self) -> dict[str, Any]:
-        pubs = [{"key": k, "source": s, **dataclasses.asdict(p)}
-                for (k, s), p in sorted(self.publishers.items())]
+        pubs = [{"key": k, "source": s, "boot": b, **p.summary()}
+                for (k, s, b), p in sorted(self.publishers.items())]
         return {"messages": self.messages, "bytes": self.bytes,
                 "undecodable": self.undecodable,
                 "missing": sum(p.missing for p in self.publishers.values()),
-                "backwards": sum(p.backwards for p in self.publishers.values()),
+                "late": sum(p.late for p in self.publishers.values()),
+                "duplicates": sum(p.duplicates for p in self.publishers.values()),
                 "publishers": pubs}
 
     def close(self, extra: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -221,34 +199,68 @@ class RecordingWriter:
 
 # ----------------------------------------------------------------------------- on the bus
 class Recorder:
-    """Subscribes to `keys` on a session and records every sample to `path`.
+    """Subscribes to `keys` on a transport (common.bus) and records every sample to `path`.
 
-    The Zenoh callback only stamps and queues the sample (never blocks, never
-    drops); a writer thread drains the queue into a `RecordingWriter` and
-    flushes on the interval even when the bus is quiet.
+    A plain subscription records every sample as it arrives. A second one, on the topics
+    whose publisher keeps a cache (common.bus.CACHED: the plant's), recovers what the
+    first missed (a cut link): such a sample is recorded only if the first never delivered
+    it, late, and what never arrives shows as seq gaps per publisher in the summary. (A
+    zenoh-ext advanced subscriber alone would not do: it drops samples of plain
+    publishers that interleave on one key.) The callbacks only stamp and queue the sample
+    (never block, never drop); a writer thread drains the queue into a `RecordingWriter`
+    and flushes on the interval even when the bus is quiet.
     """
 
-    def __init__(self, session: Any, keys: str, path: str | Path,
+    RECOVERY_WAIT_S = 2.0          # a recovered sample the live stream may still bring
+
+    def __init__(self, bus: Any, keys: str, path: str | Path,
                  meta: dict[str, dict[str, str]], flush_interval_s: float = FLUSH_INTERVAL_S):
         self.keys, self.path = keys, Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._writer = RecordingWriter(self.path, meta, flush_interval_s)
-        self._queue: collections.deque[tuple[str, bytes, int]] = collections.deque()
+        self._queue: collections.deque[tuple[str, bytes, int, bool]] = collections.deque()
         self._cv = threading.Condition()
         self._stop = False
         self.max_backlog = 0
         self.received = 0
+        self.recovered = 0
+        self._pending: list[tuple[str, bytes, int, float]] = []
+        self.missed: collections.Counter[str] = collections.Counter()
         self._thread = threading.Thread(target=self._run, name="recorder", daemon=True)
         self._thread.start()
-        self._sub = session.declare_subscriber(keys, self._on_sample)
+        self._subs = [bus.subscriber(keys, lambda k, p: self._on_sample(k, p, False))]
+        prefix = keys[:-3] if keys.endswith("/**") else None
+        for topic, owner in CACHED.items():
+            key = f"{prefix}/{owner}/{topic}" if prefix else None
+            if key is not None and key.count("/") == 3:
+                self._subs.append(bus.subscriber(
+                    key, lambda k, p: self._on_sample(k, p, True), recover=True,
+                    on_miss=lambda src, n: self.missed.update({src: n})))
 
-    def _on_sample(self, sample: Any) -> None:
-        item = (str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
+    def _on_sample(self, key: str, payload: bytes, recovery: bool) -> None:
+        item = (key, payload, time.time_ns(), recovery)
         with self._cv:
             self._queue.append(item)
-            self.received += 1
+            self.received += not recovery
             self.max_backlog = max(self.max_backlog, len(self._queue))
             self._cv.notify()
+
+    def _recovered(self, key: str, payload: bytes, t: int, since: float, final: bool) -> bool:
+        """Write a sample of the recovering subscription if the live one missed it; False
+        while it may still come live."""
+        try:
+            _, h = peek(payload)
+        except DecodeError:
+            return True                              # the live subscription records it
+        track = self._writer.publishers.get((key, h.source, h.boot))
+        if track is not None and track.has(h.seq):
+            return True
+        if track is None or h.seq > track.last:
+            if not final and time.monotonic() - since < self.RECOVERY_WAIT_S:
+                return False
+        self._writer.add(key, payload, t)
+        self.recovered += 1
+        return True
 
     def _run(self) -> None:
         while True:
@@ -258,8 +270,14 @@ class Recorder:
                 batch = list(self._queue)
                 self._queue.clear()
                 stop = self._stop
-            for key, payload, t in batch:
-                self._writer.add(key, payload, t)
+            now = time.monotonic()
+            for key, payload, t, recovery in batch:
+                if recovery:
+                    self._pending.append((key, payload, t, now))
+                else:
+                    self._writer.add(key, payload, t)
+            self._pending = [p for p in self._pending
+                             if not self._recovered(*p, final=stop and not batch)]
             self._writer.tick()
             if stop and not batch:
                 return
@@ -272,15 +290,19 @@ class Recorder:
         """Wait `drain_s` for samples in flight, undeclare, drain the queue, write the
         summary and close; returns the statistics."""
         time.sleep(drain_s)
-        try:
-            self._sub.undeclare()
-        except Exception:             # the session may already be closed
-            pass
+        for sub in self._subs:
+            for s in sub if isinstance(sub, tuple) else (sub,):
+                try:
+                    s.undeclare()
+                except Exception:     # the session may already be closed
+                    pass
         with self._cv:
             self._stop = True
             self._cv.notify()
         self._thread.join()
-        return self._writer.close({"max_backlog": self.max_backlog, "keys": self.keys})
+        return self._writer.close({"max_backlog": self.max_backlog, "keys": self.keys,
+                                   "recovered": self.recovered,
+                                   "zenoh_missed": dict(self.missed)})
 
 
 # ----------------------------------------------------------------------------- reading

@@ -19,7 +19,8 @@ import numpy as np
 
 from common.bus import topic_key
 from common.messages import DecodeError, peek
-from deploy.recording import PublisherSeq, iter_messages, read_metadata
+from common.protocol import SeqTrack
+from deploy.recording import iter_messages, read_metadata
 
 
 def stats_ms(times: list[float]) -> dict[str, float]:
@@ -141,7 +142,7 @@ def analyse(path: str | Path) -> dict[str, Any]:
             undecodable += 1
             continue
         k["latency"].append((m.log_time_ns - int(header.wall_time * 1e9)) / 1e9)
-        k["seqs"].setdefault(header.source, PublisherSeq()).see(header.seq)
+        k["seqs"].setdefault((header.source, header.boot), SeqTrack()).see(header.seq)
         if m.key in chain_topics:
             chain.on(chain_topics[m.key], m.data)
         if m.key == stats_key:
@@ -158,7 +159,8 @@ def analyse(path: str | Path) -> dict[str, Any]:
                "bytes_max": int(np.max(k["sizes"])),
                "publishers": len(k["seqs"]),
                "seq_missing": sum(p.missing for p in k["seqs"].values()),
-               "seq_backwards": sum(p.backwards for p in k["seqs"].values()),
+               "seq_late": sum(p.late for p in k["seqs"].values()),
+               "seq_duplicates": sum(p.duplicates for p in k["seqs"].values()),
                "transport": _ms(k["latency"])}
         topics.append(row)
     out: dict[str, Any] = {"recording": str(path), "vehicle": vehicle,

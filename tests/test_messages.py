@@ -13,6 +13,7 @@ from common.messages import (
     Depth,
     Event,
     Header,
+    Heartbeat,
     InputRef,
     Map,
     Plan,
@@ -25,7 +26,8 @@ from common.messages import (
 
 def header(rng) -> Header:
     return Header(int(rng.integers(0, 1 << 40)), float(rng.normal()), float(rng.uniform(0, 2e9)),
-                  "svc/0", (InputRef("vamppi/v0/plant/state", 3, 0.1),))
+                  "svc/0", (InputRef("vamppi/v0/plant/state", 3, 0.1),),
+                  int(rng.integers(0, 1 << 62)), int(rng.integers(0, 1 << 62)))
 
 
 def sample(cls, rng):
@@ -34,8 +36,11 @@ def sample(cls, rng):
     f4 = lambda *s: rng.normal(size=s).astype("<f4")  # noqa: E731
     f8 = lambda *s: rng.normal(size=s).astype("<f8")  # noqa: E731
     return {
-        State: lambda: State(h, x=f8(6), z=1.5, u_applied=f8(2), tick=4, authority="planner/0"),
-        Cmd: lambda: Cmd(h, t0=0.3, dt=0.1, controls=f4(n, 2)),
+        State: lambda: State(h, x=f8(6), z=1.5, u_applied=f8(2), tick=4, authority="planner/0",
+                             epoch=int(rng.integers(0, 9)), outcome="",
+                             goal_region=bool(rng.integers(0, 2))),
+        Cmd: lambda: Cmd(h, t0=0.3, dt=0.1, controls=f4(n, 2),
+                         rng=rng.integers(0, 1 << 32, 2, dtype=np.uint64).astype("<u4")),
         Depth: lambda: Depth(h, depth=np.abs(f4(hh, ww)), intrinsics=f8(4), cam_position=f8(3),
                              cam_rotation=f8(3, 3), base_pose=f8(4), range_max=25.0),
         Map: lambda: Map(h, mean=f4(hh, ww), variance=np.abs(f4(hh, ww)), origin=f8(2),
@@ -47,6 +52,8 @@ def sample(cls, rng):
         Event: lambda: Event(h, kind="success", outcome="success", time_to_goal_s=float("nan"),
                              detail=""),
         Clock: lambda: Clock(h, tick=12, mode="lockstep"),
+        Heartbeat: lambda: Heartbeat(h, status="ready", role="active", deadline_s=1.0,
+                                     detail=""),
     }[cls]()
 
 
@@ -105,6 +112,12 @@ def test_malformed_payloads_raise_the_clear_error(rng):
         "field 'extra' is not in the schema": pack({**good, "extra": 1}),
         "field 'header.seq'": pack({**good, "header": {**good["header"], "seq": -1}}),
         "field 'header.inputs[0]'": pack({**good, "header": {**good["header"], "inputs": [[1]]}}),
+        "field 'header.boot' is missing": pack({**good, "header": {
+            k: v for k, v in good["header"].items() if k != "boot"}}),
+        "field 'header.episode' has a bad value": pack({**good, "header": {
+            **good["header"], "episode": -3}}),
+        "field 'header.extra' is not in the schema": pack({**good, "header": {
+            **good["header"], "extra": 1}}),
     }
     for needle, payload in cases.items():
         with pytest.raises(DecodeError, match=re.escape(needle)):
@@ -120,7 +133,7 @@ def test_encode_writes_msgpacks_bytes_with_aligned_arrays(cls, rng):
         payload = encode(msg)
         raw = msgpack.unpackb(payload, raw=False)
         assert msgpack.packb(raw, use_bin_type=True) == payload   # msgpack's own encoding
-        assert raw["version"] == cls.VERSION == 2
+        assert raw["version"] == cls.VERSION == 3
         back = decode(payload, cls)
         start = np.frombuffer(payload, np.uint8).ctypes.data
         for f in dataclasses.fields(cls):
@@ -133,12 +146,36 @@ def test_encode_writes_msgpacks_bytes_with_aligned_arrays(cls, rng):
                 assert not value.flags.writeable
 
 
+def _older_header(raw: dict) -> dict:
+    return {k: v for k, v in raw["header"].items() if k not in ("boot", "episode")}
+
+
 def test_version_1_payloads_without_pad_still_decode(rng):
     m = sample(Map, rng)
     raw = raw_of(m)
-    v1 = {**raw, "version": 1, **{k: {a: b for a, b in raw[k].items() if a != "pad"}
-                                  for k in ("mean", "variance", "origin")}}
-    assert same(decode(pack(v1), Map), m)
+    v1 = {**raw, "version": 1, "header": _older_header(raw),
+          **{k: {a: b for a, b in raw[k].items() if a != "pad"}
+             for k in ("mean", "variance", "origin")}}
+    back = decode(pack(v1), Map)
+    assert back.header.boot == back.header.episode == 0
+    assert same(back, dataclasses.replace(m, header=back.header))
+
+
+def test_version_2_payloads_decode_with_the_newer_fields_defaults(rng):
+    s, c = sample(State, rng), sample(Cmd, rng)
+    for msg, newer in ((s, ("epoch", "outcome", "goal_region")), (c, ("rng",))):
+        raw = raw_of(msg)
+        v2 = {k: v for k, v in raw.items() if k not in newer}
+        back = decode(pack({**v2, "version": 2, "header": _older_header(raw)}))
+        for f in dataclasses.fields(back):
+            if f.name in newer:
+                older = f.metadata["older"]
+                want = older() if callable(older) else older
+                assert np.array_equal(getattr(back, f.name), want)
+            elif f.name != "header":
+                assert np.array_equal(getattr(back, f.name), getattr(msg, f.name))
+        with pytest.raises(DecodeError, match="is missing"):    # v3 must carry them
+            decode(pack({**v2, "header": raw["header"]}))
 
 
 def test_a_mutable_payload_is_copied_first(rng):

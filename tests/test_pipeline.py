@@ -16,7 +16,7 @@ from common.config import load_config
 from common.messages import Event, State, decode
 from deploy.launch import services_up
 from deploy.runner import run_episode
-from services.plant.core import OUTCOMES
+from services.plant.protocol import OUTCOMES
 
 pytestmark = pytest.mark.integration
 
@@ -65,8 +65,9 @@ def test_vamppi_up_reaches_the_goal_and_prints_the_summary():
                        capture_output=True, text=True, timeout=600)
     last = json.loads(r.stdout.strip().splitlines()[-1])
     assert set(last) == {"scenario", "controller", "samples", "seed", "outcome",
-                         "time_to_goal_s", "sim_time_s", "wall_time_s"}
+                         "time_to_goal_s", "sim_time_s", "wall_time_s", "restarts", "failure"}
     assert last["outcome"] == "success", r.stderr[-3000:]
+    assert last["restarts"] == {} and last["failure"] is None
     assert r.returncode == 0
     assert last["samples"] == 256 and last["seed"] == 1 and last["time_to_goal_s"] < 15
 

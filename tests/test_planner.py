@@ -411,15 +411,3 @@ def test_brake_samples_find_the_stop_that_random_samples_miss():
             assert float(out.controls[:10, 1].min()) < -4000.0         # braking hard
             assert front.max() < 34.0 and hit[b] == 0.0                # and stops short
     assert hit[0] > 0.0                                               # the test has teeth
-
-
-def test_realtime_solves_on_each_new_map_and_once_a_tick_without_one():
-    from services.planner.node import realtime_due
-    dt = 0.1
-    assert realtime_due(None, 3.0, False, dt)                  # the first solve
-    assert realtime_due(5.0, 0.02, False, dt)                  # a new episode
-    assert realtime_due(5.02, 5.12, True, dt)                  # the next tick's map is in
-    assert realtime_due(5.02, 5.08, True, dt)                  # ... early
-    assert not realtime_due(5.02, 5.06, True, dt)              # two maps in one tick: one solve
-    assert not realtime_due(5.02, 5.10, False, dt)             # no new map: wait a tick ...
-    assert realtime_due(5.02, 5.12, False, dt)                 # ... then solve on the last one

@@ -91,7 +91,7 @@ def test_every_message_is_written_exactly_and_gaps_and_garbage_are_counted(tmp_p
     assert stats["messages"] == len(sent) + 1 and stats["undecodable"] == 1
     assert stats["missing"] == 3
     (pub,) = [p for p in stats["publishers"] if p["key"] == key_s]
-    assert pub["gaps"] == [(7, 8), (30, 30)]
+    assert pub["gaps"] == [[7, 8], [30, 30]] and pub["late"] == pub["duplicates"] == 0
 
     with open(path, "rb") as f:                         # the mcap library, CRCs checked
         reader = make_reader(f, validate_crcs=True)

@@ -63,7 +63,9 @@ class MapperParams:
 class MapState:
     mean: np.ndarray          # (n, n) float32
     variance: np.ndarray      # (n, n) float32
-    observed: np.ndarray      # (n, n) bool: measured at least once
+    observed: np.ndarray      # (n, n) bool: measured at least once; always variance < prior
+                              # (a fused variance is below the one before, the known disc's
+                              # below the prior), so the map message alone restores it
 
 
 def cell_centres(p: MapperParams) -> tuple[np.ndarray, np.ndarray]:
@@ -78,6 +80,12 @@ def initial_map(p: MapperParams, x: float, y: float, z: float) -> MapState:
     mean = np.full((p.size, p.size), z, np.float32)
     var = np.where(near, p.known_variance, p.prior_variance).astype(np.float32)
     return MapState(mean, var, near)
+
+
+def restore(p: MapperParams, mean: np.ndarray, variance: np.ndarray) -> MapState:
+    """The map state a published (mean, variance) pair is: what a restarted mapper goes
+    on from."""
+    return MapState(mean, variance, variance < np.float32(p.prior_variance))
 
 
 def measurement_variance(p: MapperParams, rng: jax.Array) -> jax.Array:

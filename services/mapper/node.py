@@ -1,4 +1,9 @@
-"""Mapper service: fuses each depth frame into the elevation map and publishes it."""
+"""Mapper service: fuses each depth frame into the elevation map and publishes it.
+
+The shell of `services.mapper.protocol`. At start it asks the bus for the newest map (the
+planner holds the last it accepted) and goes on from it, so a restarted mapper resumes
+the map instead of starting an empty one.
+"""
 
 from __future__ import annotations
 
@@ -7,38 +12,49 @@ import threading
 
 import numpy as np
 
-from common.bus import Node, ref_of
+from common.bus import Node, Transport
 from common.config import Config
 from common.messages import Depth, Map
-from services.mapper import core
+from common.protocol import ACCEPTED
+from common.scenarios import scenario_of
+from services.mapper import core, protocol
 
 log = logging.getLogger(__name__)
 
 
-def main(cfg: Config, instance: str = "0", stop: threading.Event | None = None) -> None:
+def main(cfg: Config, instance: str = "0", stop: threading.Event | None = None,
+         bus: Transport | None = None) -> None:
     stop = stop or threading.Event()
-    params = core.MapperParams.from_config(cfg)
-    lockstep = cfg.episode.clock == "lockstep"
-    with Node(cfg.bus, cfg.episode.vehicle, "mapper", instance, cfg.to_dict()) as node:
-        frames = node.subscribe("depth", Depth, maxlen=64 if lockstep else 1)
+    p = protocol.MapperProtocolParams.from_config(cfg, scenario_of(cfg).origin)
+    sv = cfg.supervision
+    with Node(bus or cfg.bus, cfg.episode.vehicle, "mapper", instance, cfg.to_dict(),
+              sv.heartbeat_period_s, sv.heartbeat_deadline_s) as node:
+        frames = node.subscribe("depth", Depth, maxlen=64 if p.lockstep else 1)
         map_pub = node.publisher("map", Map)
+        node.hold("map", lambda: map_pub.latest)
         # compile the fusion before raising the token
-        warm = core.initial_map(params, 0.0, 0.0, 0.0)
-        core.fuse_depth(params, warm, np.zeros((cfg.sensor.height_px, cfg.sensor.width_px),
-                                               np.float32), np.array([1.0, 1.0, 0.0, 0.0]),
-                        np.zeros(3), np.eye(3))
+        warm = core.initial_map(p.core, 0.0, 0.0, 0.0)
+        core.fuse_depth(p.core, warm, np.zeros(p.image_shape, np.float32),
+                        np.array([1.0, 1.0, 0.0, 0.0]), np.zeros(3), np.eye(3))
+        run = protocol.MapperRun()
+        for m in reversed(node.query_latest("map", Map)):
+            problem = protocol.map_problem(p, m)
+            if not problem:
+                run = protocol.restore(p, run, m)
+                log.info("resuming from the map of t=%.2f (from %s)", m.header.stamp,
+                         m.header.source)
+                break
+            node.reject("map", problem, m)
         node.ready()
-        state: core.MapState | None = None
-        origin = np.asarray(params.origin, dtype=np.float64)
         while not stop.is_set():
-            d = frames.get(timeout=0.2)
-            if d is None:
+            node.progress()
+            got = frames.get_received(timeout=0.1)
+            if got is None:
                 continue
-            bx, by, bz, _ = d.base_pose
-            if state is None or d.header.stamp < 1e-9:
-                state = core.initial_map(params, bx, by, bz)
-            state = core.update(params, state, d.depth, d.intrinsics, d.cam_position,
-                                d.cam_rotation, d.base_pose)
-            map_pub.publish(d.header.stamp, [ref_of(frames.key, d)], mean=state.mean,
-                            variance=state.variance, origin=origin,
-                            resolution=params.resolution)
+            d, wall = got
+            run, verdict, outs = protocol.on_depth(p, run, d, wall)
+            if verdict not in ACCEPTED:
+                node.reject("depth", verdict, d)
+            for out in outs:
+                map_pub.publish_out(out)
+            node.progress(d.header.stamp, d.header.episode)

@@ -1,0 +1,213 @@
+"""The protocol rules every service shares: pure functions on frozen dataclasses.
+
+A service's protocol core (`services/<name>/protocol.py`) is a set of functions
+
+    on_<input>(params, state, message, wall) -> (state, verdict, outputs)
+
+with no bus in them: the shell (`node.py`) decodes, calls the core, publishes the
+`Out`s; the in-process runner (`deploy/runner.py`) calls the same functions with
+messages it builds itself (`Stamper`). What they share lives here:
+
+- **Input acceptance** (`check`, `accept`): every input is checked before it
+  changes any state. Per source (`header.source`) and publisher process
+  (`header.boot`): a seq no greater than the last accepted one is a duplicate, a
+  boot older than the last accepted one a message of a dead incarnation, a stamp
+  older than the last accepted one stale, a stamp further ahead than the protocol
+  allows (`ahead_s`, plus the wall time since the last in realtime) from the
+  future. A rejected message changes nothing; the verdict names the reason, which
+  the shell counts in health. A message with the stamp of the last accepted one
+  (and a new seq) is a `REPEAT`: the plant re-offering a tick, or a service
+  answering one again; lockstep answers it from the output it cached.
+- **Episodes** (`Episodes`): the plant names each episode it starts
+  (`header.episode`), and every message computed from it carries that name on.
+  Each service keeps its state per episode, for the two most recent: a message of
+  another episode is judged and answered in its own context, so that a new
+  episode starts afresh and a stray one disturbs nothing.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, replace
+from typing import Any, Generic, TypeVar
+
+from common.messages import Header, InputRef, Message
+
+EPS = 1e-6                 # stamps are sums of the plant's period: equal within this
+REALTIME_SLACK_S = 0.5     # realtime: how far a stamp may run ahead of the wall time since
+                           # the last accepted one (transport jitter between two messages)
+
+NEW = "new"                # verdicts that accept
+REPEAT = "repeat"
+ACCEPTED = (NEW, REPEAT)
+
+
+@dataclass(frozen=True)
+class Out:
+    """One message a core asks its shell to publish."""
+    topic: str
+    stamp: float
+    fields: Mapping[str, Any]
+    inputs: tuple[InputRef, ...] = ()
+    episode: int = 0
+
+
+@dataclass(frozen=True)
+class Seen:
+    """The last message accepted from one source."""
+    boot: int
+    seq: int
+    stamp: float
+    wall: float
+
+
+@dataclass(frozen=True)
+class Order:
+    """What has been accepted on one input, by source. Treated as immutable: `accept`
+    returns a new one."""
+    seen: Mapping[str, Seen] = field(default_factory=dict)
+
+    def last(self, source: str) -> Seen | None:
+        return self.seen.get(source)
+
+    def newest_stamp(self) -> float | None:
+        return max((s.stamp for s in self.seen.values()), default=None)
+
+
+def check(order: Order, h: Header, wall: float, ahead_s: float, realtime: bool) -> str:
+    """The verdict on a message with header `h` received at `wall`: NEW, REPEAT or the
+    reason it is rejected (duplicate, superseded boot, stale, future)."""
+    last = order.last(h.source)
+    if last is None:
+        return NEW
+    if h.boot < last.boot:
+        return "superseded boot"
+    if h.boot == last.boot and h.seq <= last.seq:
+        return "duplicate"
+    if h.stamp < last.stamp - EPS:
+        return "stale"
+    allowed = ahead_s + (max(wall - last.wall, 0.0) + REALTIME_SLACK_S if realtime else 0.0)
+    if h.stamp > last.stamp + allowed + EPS:
+        return "future"
+    return REPEAT if abs(h.stamp - last.stamp) <= EPS else NEW
+
+
+def accept(order: Order, h: Header, wall: float) -> Order:
+    """`order` with `h` accepted."""
+    return Order({**order.seen, h.source: Seen(h.boot, h.seq, h.stamp, wall)})
+
+
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class Episodes(Generic[T]):
+    """A service's state per episode, the two most recently used kept (last: the newest)."""
+    items: tuple[tuple[int, T], ...] = ()
+    keep: int = 2
+
+    def get(self, episode: int) -> T | None:
+        for e, ctx in self.items:
+            if e == episode:
+                return ctx
+        return None
+
+    def put(self, episode: int, ctx: T) -> Episodes[T]:
+        rest = tuple((e, c) for e, c in self.items if e != episode)
+        return replace(self, items=(*rest, (episode, ctx))[-self.keep:])
+
+    def current(self) -> tuple[int, T] | None:
+        return self.items[-1] if self.items else None
+
+
+def context(episodes: Episodes[T], episode: int, fresh: Callable[[], T]) -> T:
+    """The context of `episode`, or a fresh one."""
+    ctx = episodes.get(episode)
+    return fresh() if ctx is None else ctx
+
+
+class Stamper:
+    """Builds the messages a publisher would send (header: gap-free seq, boot, source) without
+    a bus: what the in-process runner hands from one core to the next, and what the shell's
+    publishers use (common.bus)."""
+
+    def __init__(self, source: str, boot: int | None = None,
+                 wall: Callable[[], float] = time.time):
+        self.source = source
+        self.boot = time.time_ns() if boot is None else boot
+        self.seq = 0
+        self._wall = wall
+
+    def make(self, cls: type[Message], out: Out) -> Message:
+        msg = cls(header=Header(self.seq, float(out.stamp), self._wall(), self.source,
+                                tuple(out.inputs), self.boot, out.episode), **out.fields)
+        self.seq += 1
+        return msg
+
+
+def on_tick(stamp: float, tick_s: float) -> bool:
+    """Whether a stamp falls on a control tick boundary."""
+    k = round(stamp / tick_s)
+    return abs(stamp - k * tick_s) <= EPS
+
+
+def ref(key: str, msg: Message) -> InputRef:
+    """The InputRef naming `msg` as received on `key`."""
+    return InputRef(key, msg.header.seq, msg.header.stamp)
+
+
+@dataclass
+class SeqTrack:
+    """The seqs of one publisher (one source and boot) on one key, as they arrive: which never
+    came (`gaps`, exact inclusive ranges), which came late (filling a gap) and which twice.
+    Mutable bookkeeping, fed in arrival order."""
+    count: int = 0
+    first: int = -1
+    last: int = -1                                  # the highest seen
+    gaps: list[list[int]] = field(default_factory=list)   # [from, to], sorted, disjoint
+    late: int = 0
+    duplicates: int = 0
+
+    MAX_GAPS = 10_000
+
+    def see(self, seq: int) -> None:
+        if not self.count:
+            self.first = self.last = seq
+        elif seq > self.last:
+            if seq > self.last + 1 and len(self.gaps) < self.MAX_GAPS:
+                self.gaps.append([self.last + 1, seq - 1])
+            self.last = seq
+        elif not self._fill(seq):
+            self.duplicates += 1
+            return
+        self.count += 1
+
+    def _fill(self, seq: int) -> bool:
+        for i, (a, b) in enumerate(self.gaps):
+            if a <= seq <= b:
+                pieces = [p for p in ([a, seq - 1], [seq + 1, b]) if p[0] <= p[1]]
+                self.gaps[i:i + 1] = pieces
+                self.late += 1
+                return True
+        if seq < self.first:              # older than the first seen (recovered history)
+            if seq + 1 <= self.first - 1:
+                self.gaps.insert(0, [seq + 1, self.first - 1])
+            self.first = seq
+            self.late += 1
+            return True
+        return False
+
+    def has(self, seq: int) -> bool:
+        """Whether `seq` has arrived."""
+        return (self.count > 0 and self.first <= seq <= self.last
+                and not any(a <= seq <= b for a, b in self.gaps))
+
+    @property
+    def missing(self) -> int:
+        return sum(b - a + 1 for a, b in self.gaps)
+
+    def summary(self) -> dict[str, Any]:
+        return {"count": self.count, "first": self.first, "last": self.last,
+                "missing": self.missing, "gaps": [list(g) for g in self.gaps[:50]],
+                "late": self.late, "duplicates": self.duplicates}

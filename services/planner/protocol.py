@@ -1,0 +1,284 @@
+"""The planner's protocol: which (state, map) pairs it solves on, and how it warm-starts.
+
+    on_state(params, run, state, wall) -> (run, verdict, outputs)
+    on_map(params, run, map, wall) -> (run, verdict)
+    due(params, run, wall) -> Job | None
+    solve(params, run, job, wall) -> (run, outputs)
+    recover(params, run, cmd) -> run
+
+Inputs are checked (common.protocol.check; a map against the configured grid) before they
+change anything. In lockstep the planner solves each tick once, on the state and the map
+of that tick's stamp, in order; a repeat of a tick it has answered (the plant re-offering
+it) is answered with the outputs of that solve. In realtime it solves as soon as a new
+map is in, on the newest state, at most once per half tick; with no new map for 1.5
+ticks, once a tick on the last map.
+
+**Warm start.** Each solve starts from the last one's nominal, shifted by the ticks
+between them (`mppi.advance`), which assumes the plant applied that nominal meanwhile.
+`warm_start` checks it against the plant's own account: the control the state says was
+applied (`u_applied`) must be the nominal's for that time, up to what one control period
+of the actuators' rate limits explains (the plant follows a new command through them). If
+it is not (the plant braked on stale commands or perception, another planner drove, the
+plan ran out) the nominal is started afresh, the sampler's key kept: a nominal shifted
+past what really happened had held the vehicle braking at a standstill after an outage,
+where every sample's braking force does nothing and MPPI has no gradient to leave it.
+
+**Recovery.** The plant's last obeyed command carries the nominal it applies and the
+sampler state after that solve (`Cmd.rng`): a restarted planner goes on from them
+(`recover`), exactly where the one before left off.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+
+from common.bus import topic_key
+from common.config import Config
+from common.messages import Cmd, Map, State
+from common.protocol import (
+    ACCEPTED,
+    EPS,
+    NEW,
+    REPEAT,
+    Episodes,
+    Order,
+    Out,
+    accept,
+    check,
+    context,
+    on_tick,
+    ref,
+)
+from common.scenarios import Scenario
+from services.planner import mppi
+from services.planner.costs import TERMS
+
+PENDING = 8                # lockstep: states / maps kept waiting for their partner
+
+
+@dataclass(frozen=True)
+class PlannerProtocolParams:
+    mppi: mppi.PlannerParams
+    goal: np.ndarray                  # (3,) x, y, yaw
+    truth: np.ndarray                 # the scenario's heightmap (prescient)
+    grid: tuple[int, float, tuple[float, float]]   # cells, resolution, origin
+    lockstep: bool
+    plant_dt: float
+    state_ahead_s: float
+    map_ahead_s: float
+    follow_tol: tuple[float, float]   # steer, force: one tick of the actuators' rate limits
+    state_key: str
+    map_key: str
+
+    @classmethod
+    def from_config(cls, cfg: Config, scenario: Scenario) -> PlannerProtocolParams:
+        p = mppi.PlannerParams.from_config(cfg)
+        g, v, dt = scenario.goal, cfg.vehicle, cfg.planner.dt_s
+        return cls(p, np.array([g.x, g.y, g.yaw]), scenario.heightmap,
+                   (cfg.mapper.size_cells, cfg.mapper.resolution_m,
+                    (float(scenario.origin[0]), float(scenario.origin[1]))),
+                   cfg.episode.clock == "lockstep", 1.0 / cfg.plant.rate_hz, dt,
+                   max(dt, 1.0 / cfg.sensor.rate_hz),
+                   (v.steer_rate_max_radps * dt, v.force_rate_max_nps * dt),
+                   topic_key(cfg.episode.vehicle, "state"), topic_key(cfg.episode.vehicle, "map"))
+
+    @property
+    def dt(self) -> float:
+        return self.mppi.dt
+
+
+@dataclass(frozen=True)
+class PlannerCtx:
+    """One episode's: accepted inputs, those waiting to be solved on, the warm-start state
+    and the last solve's outputs."""
+    states: Order = field(default_factory=Order)
+    maps: Order = field(default_factory=Order)
+    waiting_states: tuple[State, ...] = ()       # lockstep: by stamp; realtime: the newest
+    waiting_maps: tuple[Map, ...] = ()
+    map: Map | None = None                       # realtime: the map it solves on
+    fresh_map: bool = False
+    qs: mppi.PlannerState | None = None
+    last_t: float | None = None
+    last_wall: float = 0.0
+    answer: tuple[Out, ...] = ()
+    cold_starts: int = 0
+
+
+@dataclass(frozen=True)
+class PlannerRun:
+    seed: int = 0                                # episode.seed: the sampler's first key
+    episodes: Episodes[PlannerCtx] = field(default_factory=Episodes)
+    held_state: State | None = None
+    held_map: Map | None = None
+
+
+@dataclass(frozen=True)
+class Job:
+    episode: int
+    state: State
+    map: Map
+
+
+def map_problem(p: PlannerProtocolParams, m: Map) -> str:
+    n, res, origin = p.grid
+    if m.mean.shape != (n, n):
+        return f"wrong size {m.mean.shape}, the grid is {(n, n)}"
+    if m.resolution != res or tuple(float(v) for v in m.origin) != origin:
+        return "origin or resolution are not the configured grid's"
+    return ""
+
+
+def _newer(held: Any, msg: Any) -> bool:
+    return held is None or (msg.header.episode, msg.header.stamp) >= (held.header.episode,
+                                                                       held.header.stamp)
+
+
+def on_state(p: PlannerProtocolParams, run: PlannerRun, msg: State, wall: float
+             ) -> tuple[PlannerRun, str, tuple[Out, ...]]:
+    h = msg.header
+    ctx = context(run.episodes, h.episode, PlannerCtx)
+    verdict = check(ctx.states, h, wall, p.state_ahead_s, not p.lockstep)
+    if verdict not in ACCEPTED:
+        return run, verdict, ()
+    ctx = replace(ctx, states=accept(ctx.states, h, wall))
+    outs: tuple[Out, ...] = ()
+    boundary = on_tick(h.stamp, p.dt)
+    if p.lockstep:
+        if verdict == REPEAT and ctx.last_t is not None and abs(h.stamp - ctx.last_t) <= EPS:
+            outs = ctx.answer
+        elif verdict == NEW and boundary and (ctx.last_t is None or h.stamp > ctx.last_t + EPS):
+            ctx = replace(ctx, waiting_states=(*ctx.waiting_states, msg)[-PENDING:])
+    else:
+        ctx = replace(ctx, waiting_states=(msg,))
+    held = msg if (boundary or msg.outcome) and _newer(run.held_state, msg) else run.held_state
+    return (replace(run, episodes=run.episodes.put(h.episode, ctx), held_state=held),
+            verdict, outs)
+
+
+def on_map(p: PlannerProtocolParams, run: PlannerRun, m: Map, wall: float
+           ) -> tuple[PlannerRun, str]:
+    h = m.header
+    problem = map_problem(p, m)
+    if problem:
+        return run, problem
+    ctx = context(run.episodes, h.episode, PlannerCtx)
+    verdict = check(ctx.maps, h, wall, p.map_ahead_s, not p.lockstep)
+    if verdict not in ACCEPTED:
+        return run, verdict
+    ctx = replace(ctx, maps=accept(ctx.maps, h, wall))
+    if verdict == NEW:
+        if p.lockstep:
+            if ctx.last_t is None or h.stamp > ctx.last_t + EPS:
+                ctx = replace(ctx, waiting_maps=(*ctx.waiting_maps, m)[-PENDING:])
+        else:
+            ctx = replace(ctx, map=m, fresh_map=True)
+    held = m if _newer(run.held_map, m) else run.held_map
+    return replace(run, episodes=run.episodes.put(h.episode, ctx), held_map=held), verdict
+
+
+def realtime_due(last_t: float | None, t: float, fresh_map: bool, dt: float,
+                 since_last_s: float) -> bool:
+    """Whether a realtime solve is due on the newest state (stamp t): the first; half a tick
+    after the last on a new map; a tick after it on the last map once no new one has come
+    for 1.5 ticks of wall time."""
+    if last_t is None:
+        return True
+    if fresh_map:
+        return t >= last_t + 0.5 * dt - EPS
+    return since_last_s >= 1.5 * dt and t >= last_t + dt - EPS
+
+
+def due(p: PlannerProtocolParams, run: PlannerRun, wall: float) -> Job | None:
+    """The solve to make now, if any: in the newest episode that has one."""
+    for episode, ctx in reversed(run.episodes.items):
+        if p.lockstep:
+            maps = {round(m.header.stamp / EPS): m for m in ctx.waiting_maps}
+            for st in sorted(ctx.waiting_states, key=lambda s: s.header.stamp):
+                m = maps.get(round(st.header.stamp / EPS))
+                if m is not None:
+                    return Job(episode, st, m)
+        elif ctx.waiting_states and ctx.map is not None:
+            st = ctx.waiting_states[-1]
+            if realtime_due(ctx.last_t, st.header.stamp, ctx.fresh_map, p.dt,
+                            wall - ctx.last_wall):
+                return Job(episode, st, ctx.map)
+    return None
+
+
+def warm_start(p: PlannerProtocolParams, qs: mppi.PlannerState, last_t: float, t: float,
+               u_applied: np.ndarray) -> tuple[mppi.PlannerState, bool]:
+    """The state to solve from at `t`, after the last solve at `last_t`, and whether it had
+    to start afresh: the nominal shifted to `t` where the plant applied it meanwhile."""
+    ticks = int(round((t - last_t) / p.dt))
+    if ticks <= 0:
+        return qs, False
+    nominal = np.asarray(qs.nominal)
+    i = int(math.floor((t - p.plant_dt - last_t) / p.dt + 1e-9))  # the entry applied last
+    follows = 0 <= i < len(nominal) and ticks < len(nominal) and bool(
+        np.all(np.abs(np.asarray(u_applied, np.float64) - nominal[i]) <= p.follow_tol))
+    if not follows:
+        return qs._replace(nominal=jnp.zeros_like(qs.nominal)), True
+    return mppi.advance(qs, ticks), False
+
+
+def _finite(v: Any) -> float:
+    """A cost for the stats message: inf (every rollout invalid) becomes float max."""
+    return float(np.nan_to_num(float(v), posinf=np.finfo(np.float32).max))
+
+
+def solve(p: PlannerProtocolParams, run: PlannerRun, job: Job, wall: float
+          ) -> tuple[PlannerRun, tuple[Out, ...]]:
+    """One solve on the job's state and map: the cmd, plan and stats to publish."""
+    ctx = context(run.episodes, job.episode, PlannerCtx)
+    st, m = job.state, job.map
+    t = st.header.stamp
+    cold = False
+    if ctx.qs is None or ctx.last_t is None or t < ctx.last_t - EPS:
+        qs = mppi.initial_state(p.mppi, run.seed)
+    else:
+        qs, cold = warm_start(p, ctx.qs, ctx.last_t, t, st.u_applied)
+    mean, var = mppi.planning_map(p.mppi, p.truth, m.mean, m.variance)
+    t_solve = time.perf_counter()
+    qs, out = mppi.solve(p.mppi, qs, st.x, st.u_applied, p.goal, mean, var, m.origin,
+                         m.resolution)
+    controls = np.asarray(out.controls)
+    solve_ms = (time.perf_counter() - t_solve) * 1e3
+    inputs = (ref(p.state_key, st), ref(p.map_key, m))
+    ep = job.episode
+    outs = (
+        Out("cmd", t, {"t0": t, "dt": p.dt, "controls": controls,
+                       "rng": np.asarray(qs.key, dtype="<u4")}, inputs, ep),
+        Out("plan", t, {"controller": p.mppi.controller, "optimal": np.asarray(out.optimal),
+                        "nominal": controls, "rollouts": np.asarray(out.rollouts_xy),
+                        "rollout_costs": np.nan_to_num(np.asarray(out.rollout_costs, np.float32),
+                                                       posinf=np.finfo(np.float32).max)},
+            inputs, ep),
+        Out("stats", t, {"controller": p.mppi.controller, "samples": p.mppi.samples,
+                         "solve_ms": solve_ms, "cost_min": _finite(out.cost_min),
+                         "cost_mean": _finite(out.cost_mean),
+                         "terms": dict(zip(TERMS, map(float, np.asarray(out.terms)),
+                                           strict=True))}, inputs, ep))
+    ctx = replace(ctx, qs=qs, last_t=t, last_wall=wall, answer=outs, fresh_map=False,
+                  cold_starts=ctx.cold_starts + cold,
+                  waiting_states=tuple(s for s in ctx.waiting_states
+                                       if s.header.stamp > t + EPS) if p.lockstep else (),
+                  waiting_maps=tuple(x for x in ctx.waiting_maps if x.header.stamp > t + EPS))
+    return replace(run, episodes=run.episodes.put(ep, ctx)), outs
+
+
+def recover(p: PlannerProtocolParams, run: PlannerRun, cmd: Cmd) -> PlannerRun:
+    """Go on from the plant's last obeyed command: its controls are the nominal it applies,
+    its rng the sampler's state after that solve."""
+    if cmd.controls.shape != (p.mppi.horizon, 2) or not cmd.rng.any():
+        return run
+    ctx = context(run.episodes, cmd.header.episode, PlannerCtx)
+    qs = mppi.PlannerState(jnp.asarray(cmd.controls, jnp.float32),
+                           jnp.asarray(cmd.rng, jnp.uint32))
+    ctx = replace(ctx, qs=qs, last_t=cmd.t0)
+    return replace(run, episodes=run.episodes.put(cmd.header.episode, ctx))
