@@ -116,22 +116,27 @@ class Transport(Protocol):
     def close(self) -> None: ...
 
 
-def zenoh_config(cfg: BusConfig):
-    """A zenoh.Config from our BusConfig: mode, endpoints, multicast scouting."""
+def zenoh_config(cfg: BusConfig, wait: bool = False):
+    """A zenoh.Config from our BusConfig: mode, endpoints, multicast scouting. `wait`: a
+    client that finds no router waits for one (zenoh retries) instead of failing."""
     import zenoh
     zc = zenoh.Config()
     zc.insert_json5("mode", json.dumps(cfg.mode))
     zc.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
     zc.insert_json5("listen/endpoints", json.dumps(list(cfg.listen)))
     zc.insert_json5("scouting/multicast/enabled", json.dumps(bool(cfg.multicast_scouting)))
+    if wait and cfg.mode == "client":
+        zc.insert_json5("connect/timeout_ms", "-1")
+        zc.insert_json5("connect/exit_on_failure", "false")
     return zc
 
 
-def open_session(cfg: BusConfig):
+def open_session(cfg: BusConfig, wait: bool = False):
+    """A zenoh session (`wait`: for the router, as a service does; a tool fails at once)."""
     import zenoh
     zenoh.try_init_log_from_env()
     keep_large_buffers()
-    return zenoh.open(zenoh_config(cfg))
+    return zenoh.open(zenoh_config(cfg, wait))
 
 
 class ZenohTransport:
@@ -144,8 +149,8 @@ class ZenohTransport:
         self.session, self._owned = session, owned
 
     @classmethod
-    def open(cls, cfg: BusConfig) -> ZenohTransport:
-        return cls(open_session(cfg), owned=True)
+    def open(cls, cfg: BusConfig, wait: bool = False) -> ZenohTransport:
+        return cls(open_session(cfg, wait), owned=True)
 
     def publisher(self, key: str, *, express: bool = False, drop: bool = False,
                   cache: int = 0) -> Any:
@@ -278,7 +283,8 @@ class MemoryTransport:
 
 
 def as_transport(bus: BusConfig | Transport) -> Transport:
-    return ZenohTransport.open(bus) if isinstance(bus, BusConfig) else bus
+    """A service's transport: a zenoh session that waits for its router, or `bus` itself."""
+    return ZenohTransport.open(bus, wait=True) if isinstance(bus, BusConfig) else bus
 
 
 # ----------------------------------------------------------------------------- health

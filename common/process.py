@@ -24,7 +24,7 @@ from collections.abc import Callable
 
 log = logging.getLogger(__name__)
 
-STOP_GRACE_S = 0.9           # a stopped service is gone within a second of the signal
+STOP_GRACE_S = 0.8           # a stopped service is gone within a second of the signal
 _PR_SET_PDEATHSIG = 1
 
 

@@ -9,13 +9,15 @@ with no bus in them: the shell (`node.py`) decodes, calls the core, publishes th
 messages it builds itself (`Stamper`). What they share lives here:
 
 - **Input acceptance** (`check`, `accept`): every input is checked before it
-  changes any state. Per source (`header.source`) and publisher process
-  (`header.boot`): a seq no greater than the last accepted one is a duplicate, a
-  boot older than the last accepted one a message of a dead incarnation, a stamp
-  older than the last accepted one stale, a stamp further ahead than the protocol
-  allows (`ahead_s`, plus the wall time since the last in realtime) from the
-  future. A rejected message changes nothing; the verdict names the reason, which
-  the shell counts in health. A message with the stamp of the last accepted one
+  changes any state. It must come from the service that owns its topic
+  (common.bus.TOPICS), and within an episode from the one instance of it that fed
+  the first accepted message (a restart keeps the instance's name). Per source
+  (`header.source`) and publisher process (`header.boot`): a seq no greater than the
+  last accepted one is a duplicate, a boot older than the last accepted one a message
+  of a dead incarnation, a stamp older than the last accepted one stale, a stamp
+  further ahead than the protocol allows (`ahead_s`, plus the wall time since the
+  last in realtime) from the future. A rejected message changes nothing; the verdict
+  names the reason, which the shell counts in health. A message with the stamp of the last accepted one
   (and a new seq) is a `REPEAT`: the plant re-offering a tick, or a service
   answering one again; lockstep answers it from the output it cached.
 - **Episodes** (`Episodes`): the plant names each episode it starts
@@ -64,9 +66,10 @@ class Seen:
 
 @dataclass(frozen=True)
 class Order:
-    """What has been accepted on one input, by source. Treated as immutable: `accept`
-    returns a new one."""
+    """What has been accepted on one input, by source, and the source it is bound to.
+    Treated as immutable: `accept` returns a new one."""
     seen: Mapping[str, Seen] = field(default_factory=dict)
+    bound: str = ""
 
     def last(self, source: str) -> Seen | None:
         return self.seen.get(source)
@@ -75,9 +78,15 @@ class Order:
         return max((s.stamp for s in self.seen.values()), default=None)
 
 
-def check(order: Order, h: Header, wall: float, ahead_s: float, realtime: bool) -> str:
+def check(order: Order, h: Header, wall: float, ahead_s: float, realtime: bool,
+          owner: str = "") -> str:
     """The verdict on a message with header `h` received at `wall`: NEW, REPEAT or the
-    reason it is rejected (duplicate, superseded boot, stale, future)."""
+    reason it is rejected (not the owner's, another instance, duplicate, superseded
+    boot, stale, future). `owner`: the service whose topic it is ('' for any)."""
+    if owner and h.source.split("/")[0] != owner:
+        return f"not from the {owner}"
+    if owner and order.bound and h.source != order.bound:
+        return f"not this episode's {owner} ({order.bound})"
     last = order.last(h.source)
     if last is None:
         return NEW
@@ -94,8 +103,9 @@ def check(order: Order, h: Header, wall: float, ahead_s: float, realtime: bool) 
 
 
 def accept(order: Order, h: Header, wall: float) -> Order:
-    """`order` with `h` accepted."""
-    return Order({**order.seen, h.source: Seen(h.boot, h.seq, h.stamp, wall)})
+    """`order` with `h` accepted (bound to its source if it was the first)."""
+    return Order({**order.seen, h.source: Seen(h.boot, h.seq, h.stamp, wall)},
+                 order.bound or h.source)
 
 
 T = TypeVar("T")

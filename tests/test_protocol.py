@@ -66,6 +66,12 @@ def test_acceptance_per_source_and_boot():
     assert check(accept(o, replace(h, boot=2), 100.0), replace(h, seq=9), 100.0, 0.1,
                  False) == "superseded boot"
     assert check(o, replace(h, source="rogue/0", stamp=50.0), 100.0, 0.1, False) == NEW
+    # with an owner: its service only, and within the episode the instance bound first
+    assert check(o, replace(h, seq=1), 100.0, 0.1, False, "plant") == REPEAT
+    assert check(o, replace(h, source="rogue/0"), 100.0, 0.1, False, "plant") == (
+        "not from the plant")
+    assert check(o, replace(h, source="plant/7"), 100.0, 0.1, False, "plant") == (
+        "not this episode's plant (plant/0)")
 
 
 def test_episodes_keep_the_two_most_recent():

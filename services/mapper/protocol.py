@@ -97,7 +97,7 @@ def on_depth(p: MapperProtocolParams, run: MapperRun, d: Depth, wall: float
     if problem:
         return run, problem, ()
     ctx = context(run.episodes, h.episode, MapperCtx)
-    verdict = check(ctx.order, h, wall, p.ahead_s, not p.lockstep)
+    verdict = check(ctx.order, h, wall, p.ahead_s, not p.lockstep, "sensor")
     if verdict == NEW and ctx.stamp is not None:        # judged against the map, too
         if h.stamp < ctx.stamp - EPS:
             verdict = "stale"

@@ -143,7 +143,7 @@ def on_state(p: PlannerProtocolParams, run: PlannerRun, msg: State, wall: float
              ) -> tuple[PlannerRun, str, tuple[Out, ...]]:
     h = msg.header
     ctx = context(run.episodes, h.episode, PlannerCtx)
-    verdict = check(ctx.states, h, wall, p.state_ahead_s, not p.lockstep)
+    verdict = check(ctx.states, h, wall, p.state_ahead_s, not p.lockstep, "plant")
     if verdict not in ACCEPTED:
         return run, verdict, ()
     ctx = replace(ctx, states=accept(ctx.states, h, wall))
@@ -168,7 +168,7 @@ def on_map(p: PlannerProtocolParams, run: PlannerRun, m: Map, wall: float
     if problem:
         return run, problem
     ctx = context(run.episodes, h.episode, PlannerCtx)
-    verdict = check(ctx.maps, h, wall, p.map_ahead_s, not p.lockstep)
+    verdict = check(ctx.maps, h, wall, p.map_ahead_s, not p.lockstep, "mapper")
     if verdict not in ACCEPTED:
         return run, verdict
     ctx = replace(ctx, maps=accept(ctx.maps, h, wall))

@@ -85,7 +85,7 @@ def on_state(p: SensorParams, run: SensorRun, msg: State, wall: float
              ) -> tuple[SensorRun, str, tuple[Out, ...]]:
     h = msg.header
     ctx = context(run.episodes, h.episode, SensorCtx)
-    verdict = check(ctx.order, h, wall, p.ahead_s, not p.lockstep)
+    verdict = check(ctx.order, h, wall, p.ahead_s, not p.lockstep, "plant")
     if verdict not in ACCEPTED:
         return run, verdict, ()
     ctx = replace(ctx, order=accept(ctx.order, h, wall))

@@ -1,0 +1,423 @@
+"""Real processes on a real router for the fault tests: a `vamppi router` process, the
+services as `vamppi service` processes, and the test's own client recording the bus.
+
+Nothing here fakes a component: a fault is a signal to a process, a router killed and
+started again, a link cut in a network namespace, or messages another client sends.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from common.bus import (
+    SERVICES,
+    ZenohTransport,
+    alive_instances,
+    heartbeat_key,
+    open_session,
+    query_json,
+    topic_key,
+)
+from common.config import BusConfig, Config, load_config
+from common.messages import DecodeError, Event, Heartbeat, State, decode
+from deploy.launch import free_port, service_command
+from deploy.recording import Recorder, iter_messages, recording_metadata
+from services.plant.protocol import OUTCOMES
+
+PY = sys.executable
+
+
+def client(endpoint: str) -> BusConfig:
+    return BusConfig("client", (endpoint,), (), False)
+
+
+class Proc:
+    """A vamppi process whose stderr is kept in a file (read on failure)."""
+
+    def __init__(self, args: list[str], log: Path, env: dict[str, str] | None = None,
+                 prefix: list[str] | None = None):
+        self.args, self.log = args, log
+        self._f = open(log, "ab")  # noqa: SIM115
+        self.p = subprocess.Popen([*(prefix or []), *args], stdout=self._f, stderr=self._f,
+                                  stdin=subprocess.DEVNULL, env={**os.environ, **(env or {})})
+
+    @property
+    def pid(self) -> int:
+        return self.p.pid
+
+    def signal(self, sig: int) -> None:
+        if self.p.poll() is None:
+            os.kill(self.p.pid, sig)
+
+    def stop(self, timeout: float = 10.0) -> int | None:
+        if self.p.poll() is None:
+            self.p.terminate()
+            try:
+                self.p.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.p.kill()
+                self.p.wait()
+        self._f.close()
+        return self.p.returncode
+
+    def tail(self, n: int = 3000) -> str:
+        return self.log.read_text(errors="replace")[-n:]
+
+
+class Bus:
+    """A router process, services as processes and an observer that records everything
+    (plain and recovering subscriptions, deploy.recording.Recorder) and follows the
+    states and events live."""
+
+    def __init__(self, overrides: list[str], tmp: Path, listen: list[str] | None = None,
+                 port: int | None = None):
+        self.overrides, self.tmp = list(overrides), tmp
+        self.cfg: Config = load_config(overrides=overrides)
+        self.port = port or free_port()
+        self.endpoint = f"tcp/127.0.0.1:{self.port}"
+        self.listen = listen or [self.endpoint]
+        self.procs: dict[str, Proc] = {}
+        self.router = self.start_router()
+        self.session = open_session(client(self.endpoint))
+        self.bus = ZenohTransport(self.session)
+        v = self.cfg.episode.vehicle
+        keys = f"vamppi/{v}/**"
+        self.path = tmp / "bus.mcap"
+        self.recorder = Recorder(self.bus, keys, self.path,
+                                 recording_metadata(self.cfg.to_dict(), keys))
+        self.events: list[Event] = []
+        self.last_state: State | None = None
+        self.states_seen = 0
+        self.beats: list[tuple[float, Heartbeat]] = []
+        self._lock = threading.Lock()
+        self._subs = [self.bus.subscriber(topic_key(v, "state"), self._on_state),
+                      self.bus.subscriber(topic_key(v, "events"), self._on_event),
+                      self.bus.subscriber(heartbeat_key(v), self._on_beat)]
+        self._stats: dict[str, Any] | None = None
+
+    # processes ----------------------------------------------------------------
+    def start_router(self) -> Proc:
+        args = [PY, "-m", "deploy.cli", "router"]
+        for ep in self.listen:
+            args += ["--listen", ep]
+        p = Proc(args, self.tmp / "router.log")
+        deadline = time.monotonic() + 30
+        while "router listening" not in p.tail():
+            assert time.monotonic() < deadline and p.p.poll() is None, p.tail()
+            time.sleep(0.05)
+        return p
+
+    def service(self, name: str, extra: list[str] = (), endpoint: str | None = None,
+                prefix: list[str] | None = None, env: dict[str, str] | None = None) -> Proc:
+        cmd = service_command(name, endpoint or self.endpoint, [*self.overrides, *extra], None)
+        p = Proc(cmd, self.tmp / f"{name}.log", env, prefix)
+        self.procs[name] = p
+        return p
+
+    def up(self, services: tuple[str, ...] = SERVICES, timeout: float = 240.0,
+           **kw: Any) -> None:
+        for name in services:
+            self.service(name, **kw)
+        self.wait(lambda: all(s in {x for x, _ in alive_instances(self.bus,
+                                                                   self.cfg.episode.vehicle)}
+                              for s in services), timeout, "services ready")
+
+    def kill(self, name: str, sig: int = signal.SIGKILL) -> float:
+        p = self.procs[name]
+        t = time.monotonic()
+        p.signal(sig)
+        if sig in (signal.SIGKILL, signal.SIGTERM):
+            p.p.wait(20)
+        return t
+
+    # observing ------------------------------------------------------------------
+    def _on_state(self, _key: str, payload: bytes) -> None:
+        try:
+            s = decode(payload, State)
+        except DecodeError:
+            return
+        with self._lock:
+            self.states_seen += 1
+            if self.last_state is None or s.header.stamp >= self.last_state.header.stamp:
+                self.last_state = s
+
+    def _on_event(self, _key: str, payload: bytes) -> None:
+        try:
+            e = decode(payload, Event)
+        except DecodeError:
+            return
+        with self._lock:
+            self.events.append(e)
+
+    def _on_beat(self, _key: str, payload: bytes) -> None:
+        try:
+            hb = decode(payload, Heartbeat)
+        except DecodeError:
+            return
+        with self._lock:
+            self.beats.append((time.monotonic(), hb))
+
+    @property
+    def t(self) -> float:
+        with self._lock:
+            return -1.0 if self.last_state is None else self.last_state.header.stamp
+
+    @property
+    def speed(self) -> float:
+        with self._lock:
+            s = self.last_state
+            return 0.0 if s is None else float(np.hypot(s.x[0], s.x[1]))
+
+    def outcome(self) -> Event | None:
+        with self._lock:
+            done = [e for e in self.events if e.kind in OUTCOMES]
+        return done[0] if done else None
+
+    def kinds(self) -> list[tuple[float, str, str]]:
+        with self._lock:
+            return [(round(e.header.stamp, 2), e.kind, e.detail) for e in self.events]
+
+    def wait(self, pred: Callable[[], bool], timeout: float, what: str) -> None:
+        deadline = time.monotonic() + timeout
+        while not pred():
+            if time.monotonic() > deadline:
+                raise AssertionError(f"timed out waiting for {what}\n" + self.logs())
+            time.sleep(0.02)
+
+    def wait_outcome(self, timeout: float = 300.0) -> Event:
+        self.wait(lambda: self.outcome() is not None, timeout, "the outcome")
+        return self.outcome()
+
+    def health(self, service: str, instance: str = "0") -> dict[str, Any]:
+        from common.bus import admin_key
+        got = query_json(self.bus, admin_key(self.cfg.episode.vehicle, service, instance,
+                                             "health"))
+        return got[0] if got else {}
+
+    def logs(self) -> str:
+        return "\n".join(f"--- {n}\n{p.tail(1500)}" for n, p in
+                         [("router", self.router), *self.procs.items()])
+
+    # the end ----------------------------------------------------------------------
+    def close(self) -> dict[str, Any]:
+        if self._stats is None:
+            for p in self.procs.values():
+                p.stop()
+            self._stats = self.recorder.stop(drain_s=0.5)
+            for s in self._subs:
+                s.undeclare()
+            self.session.close()
+            self.router.stop()
+        return self._stats
+
+    def trajectory(self) -> np.ndarray:
+        """The 50 Hz trajectory (t, x) from the recording, one row per stamp (a re-offered
+        tick is the same state again), of the plant processes that ran the episode (those
+        that published its events: not another client's states)."""
+        self.close()
+        boots = set()
+        for m in iter_messages(self.path):
+            if m.key.endswith("/plant/events"):
+                try:
+                    boots.add(decode(m.data, Event).header.boot)
+                except DecodeError:
+                    pass
+        rows: dict[float, np.ndarray] = {}
+        for m in iter_messages(self.path):
+            if m.key.endswith("/plant/state"):
+                try:
+                    s = decode(m.data, State)
+                except DecodeError:
+                    continue
+                if s.header.boot in boots:
+                    rows.setdefault(round(s.header.stamp, 6),
+                                    np.concatenate([[s.header.stamp], s.x]))
+        return np.array([rows[k] for k in sorted(rows)])
+
+    def __enter__(self) -> Bus:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def json_lines(text: str, prefix: str) -> list[dict[str, Any]]:
+    """The JSON objects logged after `prefix` in a process's stderr."""
+    out = []
+    for line in text.splitlines():
+        if prefix in line:
+            try:
+                out.append(json.loads(line.split(prefix, 1)[1]))
+            except json.JSONDecodeError:
+                pass
+    return out
+
+
+# ----------------------------------------------------------------------------- hostile input
+def _with(msg: Any, **header: Any) -> Any:
+    from dataclasses import replace
+    return replace(msg, header=replace(msg.header, **header))
+
+
+def hostile(topic: str, msg: Any, first: Any) -> list[tuple[str, bytes]]:
+    """Hostile variants of a real message `msg` (and the topic's first, `first`), as another
+    client would send them once: (name, payload). Those that claim the real publisher do
+    so as a newer process of it (boot + 1), so that it is their stamps and contents that
+    must give them away."""
+    from dataclasses import replace
+
+    from common.messages import encode
+    h = msg.header
+    newer = h.boot + 1
+    out = [("duplicate", encode(msg)),
+           ("stale", encode(_with(first, boot=newer, seq=0))),
+           ("future", encode(_with(replace(msg, t0=msg.t0 + 5.0) if topic == "cmd" else msg,
+                                   boot=newer, seq=1, stamp=h.stamp + 5.0))),
+           ("another client's", encode(_with(msg, source="rogue/0", seq=0, boot=1)))]
+    if topic == "state":
+        x = msg.x.copy()
+        x[3] = np.nan
+        out.append(("nan", encode(replace(msg, x=x))[:-1] + b"\x00"))   # and truncated
+    elif topic == "depth":
+        out += [("wrong size", encode(_with(replace(msg, depth=np.ones((10, 10), np.float32)),
+                                            boot=newer, seq=2))),
+                ("wrong camera", encode(_with(replace(msg, intrinsics=msg.intrinsics * 2),
+                                              boot=newer, seq=3)))]
+    elif topic == "map":
+        for i, n in enumerate((10, 2600)):
+            z = np.zeros((n, n), np.float32)
+            out.append((f"{n} x {n}", encode(_with(replace(msg, mean=z, variance=z),
+                                                   boot=newer, seq=2 + i))))
+    elif topic == "cmd":
+        n = len(msg.controls)
+        big = np.tile(np.array([[0.0, 1e6]], np.float32), (n, 1))
+        out += [("dt 0", encode(_with(replace(msg, dt=0.0), boot=newer, seq=2))),
+                ("one control", encode(_with(replace(msg, dt=0.02, controls=msg.controls[:1]),
+                                             boot=newer, seq=3))),
+                ("beyond limits", encode(_with(replace(msg, controls=big), boot=newer, seq=4))),
+                ("another episode", encode(_with(msg, boot=newer, seq=5,
+                                                 episode=h.episode + 1)))]
+        nan = msg.controls.copy()
+        nan[0, 0] = np.nan
+        out.append(("nan", encode(replace(msg, controls=nan))))
+    return out
+
+
+class Rogue:
+    """Another client on the router: at the `at`-th real message of each topic (of states,
+    which come five a tick, the 5 `at`-th) it sends every hostile variant of it once (from
+    its own thread)."""
+
+    TOPICS = ("state", "depth", "map", "cmd")
+
+    def __init__(self, endpoint: str, vehicle: str, at: int = 10):
+        from common.messages import MESSAGE_TYPES
+        self.session = open_session(client(endpoint))
+        self.sent: list[tuple[str, str]] = []
+        self._first: dict[str, Any] = {}
+        self._count: dict[str, int] = {}
+        self._types = {t: MESSAGE_TYPES[f"vamppi.{t.capitalize()}"] for t in self.TOPICS}
+        self._lock = threading.Lock()
+        self.vehicle = vehicle
+        self._subs = [self.session.declare_subscriber(
+            topic_key(vehicle, t), lambda s, t=t: self._on(t, s.payload.to_bytes()))
+            for t in self.TOPICS]
+        self.at = at
+
+    def _on(self, topic: str, payload: bytes) -> None:
+        try:
+            msg = decode(payload, self._types[topic])
+        except DecodeError:
+            return
+        if msg.header.source.startswith("rogue") or msg.header.boot != self._boot(topic, msg):
+            return
+        with self._lock:
+            self._first.setdefault(topic, msg)
+            n = self._count[topic] = self._count.get(topic, 0) + 1
+        if n == self.at * (5 if topic == "state" else 1):
+            threading.Thread(target=self._send, args=(topic, msg)).start()
+
+    def _boot(self, topic: str, msg: Any) -> int:
+        first = self._first.get(topic)
+        return msg.header.boot if first is None else first.header.boot
+
+    def _send(self, topic: str, msg: Any) -> None:
+        import zenoh
+        for name, payload in hostile(topic, msg, self._first[topic]):
+            self.session.put(topic_key(self.vehicle, topic), payload,      # every one arrives
+                             congestion_control=zenoh.CongestionControl.BLOCK)
+            with self._lock:
+                self.sent.append((topic, name))
+
+    def close(self) -> None:
+        self.session.close()
+
+
+def rejections(text: str) -> list[tuple[str, str]]:
+    """(topic, reason) of every "rejected a <topic> message: <reason>" log line."""
+    import re
+    return [(m.group(1), m.group(2)) for m in re.finditer(
+        r"rejected a (\w+) message: (.+?) from \S+ seq \d+ stamp", text)]
+
+
+class Up:
+    """`vamppi up` as a process: its stderr read live (each line with its monotonic time),
+    its children found by the vehicle name it was given."""
+
+    def __init__(self, args: list[str], vehicle: str):
+        self.vehicle = vehicle
+        self.p = subprocess.Popen([PY, "-m", "deploy.cli", "up", "--vehicle", vehicle, *args],
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self.lines: list[tuple[float, str]] = []
+        self._t = threading.Thread(target=self._read, daemon=True)
+        self._t.start()
+
+    def _read(self) -> None:
+        for line in self.p.stderr:
+            self.lines.append((time.monotonic(), line.rstrip()))
+
+    def wait_line(self, text: str, timeout: float, after: float = 0.0) -> float:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            for t, line in list(self.lines):
+                if t >= after and text in line:
+                    return t
+            time.sleep(0.02)
+        raise AssertionError(f"no line with {text!r} in {timeout} s:\n" + self.stderr()[-4000:])
+
+    def child(self, service: str) -> int:
+        (pid,) = [p for p in processes_with(self.vehicle)
+                  if f"service {service} " in cmdline(p)]
+        return pid
+
+    def finish(self, timeout: float = 600.0) -> dict[str, Any]:
+        out, _ = self.p.communicate(timeout=timeout)
+        self._t.join(5)
+        return json.loads(out.strip().splitlines()[-1])
+
+    def stderr(self) -> str:
+        return "\n".join(line for _, line in self.lines)
+
+
+def cmdline(pid: int) -> str:
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            return f.read().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""
+
+
+def processes_with(marker: str) -> list[int]:
+    """The pids of the processes whose command line names `marker`."""
+    return [int(p) for p in os.listdir("/proc") if p.isdigit() and marker in cmdline(int(p))]

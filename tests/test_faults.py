@@ -1,0 +1,243 @@
+"""Faults survived: real processes, a real router, real signals, another client's messages
+(docs/reliability.md has the matrix these tests fill)."""
+
+import collections
+import os
+import signal
+import time
+
+import numpy as np
+import pytest
+
+from common.config import load_config
+from common.messages import decode
+from deploy.runner import run_episode
+from tests.harness import Bus, Rogue, rejections
+
+pytestmark = pytest.mark.integration
+
+SHORT = ["planner.samples=64", "episode.timeout_s=3.0", 'episode.scenario="open-field"']
+
+
+@pytest.fixture(scope="module")
+def reference():
+    return run_episode(load_config(overrides=SHORT)).trajectory
+
+
+@pytest.mark.parametrize("name", ["sensor", "mapper", "planner", "plant", "router"])
+def test_lockstep_resumes_bit_for_bit_after_a_restart(name, reference, tmp_path):
+    """SIGKILL mid-episode, a fresh process: the episode goes on where it was and its
+    trajectory is the undisturbed one's, bit for bit."""
+    with Bus(SHORT, tmp_path) as b:
+        b.up()
+        b.wait(lambda: b.t >= 1.0, 120, "t >= 1 s")
+        if name == "router":
+            b.router.signal(signal.SIGKILL)
+            b.router.p.wait()
+            time.sleep(1.0)
+            b.router = b.start_router()
+        else:
+            b.kill(name)
+            time.sleep(0.5)
+            b.service(name)
+        assert b.wait_outcome().kind == "timeout"
+        kinds = [k for _, k, _ in b.kinds()]
+        got = b.trajectory()
+        stats = b.close()
+    assert got.shape == reference.shape and got.tobytes() == reference.tobytes()
+    if name == "plant":
+        assert "resume" in kinds
+    plant_gaps = [p for p in stats["publishers"] if p["source"].startswith("plant")
+                  and not p["key"].endswith("heartbeat") and p["missing"]]
+    assert plant_gaps == []              # what the plant sent is all in the recording
+
+
+def test_hostile_messages_change_nothing_in_lockstep(reference, tmp_path):
+    """Once each: a duplicate, a stale, a future-stamped, another client's, a wrong-size
+    or malformed and a forged message on every topic the services read."""
+    with Bus(SHORT, tmp_path) as b:
+        b.up()
+        rogue = Rogue(b.endpoint, b.cfg.episode.vehicle, at=10)
+        assert b.wait_outcome().kind == "timeout"
+        sent = list(rogue.sent)
+        rogue.close()
+        got = b.trajectory()
+        logs = {n: p.tail(200_000) for n, p in b.procs.items()}
+    assert got.tobytes() == reference.tobytes()
+    assert len(sent) == 4 * 4 + 1 + 2 + 2 + 5
+    rej = collections.Counter(r for text in logs.values() for r in rejections(text))
+    expect = {("state", "duplicate"), ("state", "stale"), ("state", "future"),
+              ("state", "not from the plant"), ("depth", "duplicate"), ("depth", "stale"),
+              ("depth", "future"), ("depth", "not from the sensor"),
+              ("map", "duplicate"), ("map", "stale"), ("map", "future"),
+              ("map", "not from the mapper"), ("cmd", "duplicate"), ("cmd", "stale"),
+              ("cmd", "future"), ("cmd", "not the authority"), ("cmd", "another episode"),
+              ("cmd", "dt 0.0 is not positive"), ("cmd", "controls beyond the actuator limits")}
+    assert expect <= set(rej), sorted(rej)
+    assert any("do not cover the tick" in why for t, why in rej if t == "cmd")
+    assert any("wrong size" in why for t, why in rej if t == "depth")
+    assert any("intrinsics" in why for t, why in rej if t == "depth")
+    assert sum("wrong size" in why for t, why in rej if t == "map") == 2
+    undecodable = sum(text.count("dropped a message") for text in logs.values())
+    assert undecodable >= 2                  # the truncated state, the NaN command
+
+
+@pytest.mark.parametrize("clock", ["lockstep", "realtime"])
+def test_every_service_exits_within_a_second_of_sigterm(clock, tmp_path):
+    """Mid-episode, the lockstep plant waiting for a command that does not come (the
+    planner stopped), and a planner in the middle of a cold compilation."""
+    over = [*SHORT, f'episode.clock="{clock}"', "episode.timeout_s=30"]
+    took = {}
+    with Bus(over, tmp_path) as b:
+        b.up()
+        b.wait(lambda: b.t >= 0.5, 120, "t >= 0.5 s")
+        b.kill("planner", signal.SIGSTOP)
+        time.sleep(0.5)
+        for name in ("plant", "sensor", "mapper", "planner"):
+            p = b.procs[name]
+            t = time.monotonic()
+            p.signal(signal.SIGTERM)
+            p.signal(signal.SIGCONT)            # the stopped planner sees it now
+            p.p.wait(5)
+            took[name] = time.monotonic() - t
+        cold = b.service("planner", extra=['planner.controller="va"'],
+                         env={"VAMPPI_JAX_CACHE": "off"})
+        time.sleep(3.0)                             # compiling, for some 10 s
+        assert cold.p.poll() is None
+        t = time.monotonic()
+        cold.p.send_signal(signal.SIGTERM)
+        cold.p.wait(5)
+        took["compiling planner"] = time.monotonic() - t
+    assert all(s < 1.0 for s in took.values()), took
+
+
+RT = ["planner.samples=64", 'episode.scenario="open-field"', 'episode.clock="realtime"',
+      "episode.timeout_s=40"]
+
+
+def test_hostile_messages_do_not_stop_a_realtime_episode(tmp_path):
+    """The same messages in realtime: the episode goes on to the goal. Latest-value inboxes
+    keep one message per source, so of the variants that claim the real publisher only the
+    last reaches the service (the others are counted as superseded); another client's are
+    rejected on every topic."""
+    with Bus(RT, tmp_path) as b:
+        b.up()
+        rogue = Rogue(b.endpoint, b.cfg.episode.vehicle, at=30)
+        ev = b.wait_outcome()
+        sent = list(rogue.sent)
+        rogue.close()
+        logs = {n: p.tail(200_000) for n, p in b.procs.items()}
+    assert ev.kind == "success" and len(sent) == 26
+    rej = {r for text in logs.values() for r in rejections(text)}
+    for topic, why in (("state", "not from the plant"), ("depth", "not from the sensor"),
+                       ("map", "not from the mapper"), ("cmd", "not the authority"),
+                       ("cmd", "another episode")):
+        assert (topic, why) in rej, sorted(rej)
+
+
+@pytest.mark.parametrize("name", ["mapper", "sensor", "planner", "plant"])
+def test_realtime_loss_of_a_service_stops_the_vehicle_and_it_drives_on(name, tmp_path):
+    """Killed at speed: the plant brakes to a standstill (perception or commands stale);
+    restarted, the service rejoins, the vehicle drives on and reaches the goal."""
+    with Bus(RT, tmp_path) as b:
+        b.up()
+        b.wait(lambda: b.t >= 4.0, 120, "t >= 4 s")
+        v0 = b.speed
+        b.kill(name)
+        if name != "plant":
+            b.wait(lambda: b.speed < 0.05, 30, "a standstill")
+            time.sleep(0.5)
+        b.service(name)
+        if name != "plant":
+            b.wait(lambda: b.speed > 0.5, 60, "moving again")
+        ev = b.wait_outcome()
+        kinds = b.kinds()
+    assert v0 > 3.0 and ev.kind == "success", kinds
+    degraded = [d for _, k, d in kinds if k == "degraded"]
+    if name in ("mapper", "sensor"):
+        assert degraded and degraded[0].startswith("perception stale")
+    elif name == "planner":
+        assert degraded and degraded[0].startswith("commands stale")
+    else:
+        assert "resume" in [k for _, k, _ in kinds]
+
+
+def test_lockstep_without_the_mapper_stops_safely_and_says_why(tmp_path):
+    """No supervisor, the mapper gone: the plant re-offers, names the silent service, and
+    ends the episode as aborted after plant.lockstep_wait_s."""
+    with Bus([*SHORT, "plant.lockstep_wait_s=4.0"], tmp_path) as b:
+        b.up()
+        b.wait(lambda: b.t >= 0.5, 120, "t >= 0.5 s")
+        b.kill("mapper")
+        ev = b.wait_outcome(60)
+        kinds = b.kinds()
+    assert ev.kind == "aborted" and "no heartbeat: mapper" in ev.detail, kinds
+    assert any(k == "degraded" and "no heartbeat: mapper" in d for _, k, d in kinds)
+
+
+UP = ["--samples", "64", "--set", "episode.timeout_s=3.0", "--scenario", "open-field"]
+
+
+@pytest.mark.parametrize("sig", [signal.SIGSTOP, signal.SIGKILL])
+def test_vamppi_up_restarts_a_wedged_or_killed_planner(sig, reference, tmp_path):
+    """A planner stopped (its liveliness token stays up) or killed mid-episode: `vamppi up`
+    sees its heartbeat miss the deadline within about a second, kills it, starts another;
+    the lockstep episode completes as the undisturbed one, bit for bit."""
+    from deploy.recording import iter_messages
+    from tests.harness import Up, json_lines, processes_with
+    marker = f"sup{sig}x{id(tmp_path) % 100000}"
+    rec = tmp_path / "up.mcap"
+    up = Up([*UP, "--record", str(rec)], marker)
+    up.wait_line("all services up", 240)
+    time.sleep(0.5)
+    pid = up.child("planner")
+    t = time.monotonic()
+    os.kill(pid, sig)
+    detected = up.wait_line('"restarting"', 30) - t
+    summary = up.finish()
+    assert summary["outcome"] == "timeout" and summary["restarts"] == {"planner": 1}
+    (event,) = json_lines(up.stderr(), "vamppi up: ")
+    assert event["restarting"]["service"] == "planner"
+    assert detected < 2.0                                   # the deadline is 1 s
+    boots = {decode(m.data).header.boot for m in iter_messages(rec)
+             if m.key.endswith("/plant/events")}
+    rows = {}
+    for m in iter_messages(rec):
+        if m.key.endswith("/plant/state"):
+            s = decode(m.data)
+            if s.header.boot in boots:
+                rows.setdefault(round(s.header.stamp, 6), np.concatenate([[s.header.stamp],
+                                                                          s.x]))
+    got = np.array([rows[k] for k in sorted(rows)])
+    assert got.tobytes() == reference.tobytes()
+    time.sleep(0.3)
+    assert processes_with(marker) == []
+
+
+def test_vamppi_up_gives_up_naming_the_service_and_exits_non_zero():
+    from tests.harness import Up, processes_with
+    marker = f"giveup{os.getpid()}"
+    up = Up([*UP, "--set", "supervision.restarts=0"], marker)
+    up.wait_line("all services up", 240)
+    os.kill(up.child("sensor"), signal.SIGKILL)
+    summary = up.finish()
+    assert up.p.returncode == 1 and summary["outcome"] == "error"
+    assert summary["failure"]["service"] == "sensor"
+    assert "exited" in summary["failure"]["why"] or "heartbeat" in summary["failure"]["why"]
+    time.sleep(0.3)
+    assert processes_with(marker) == []
+
+
+def test_kill_9_of_vamppi_up_leaves_no_process_behind():
+    from tests.harness import Up, processes_with
+    marker = f"kill9{os.getpid()}"
+    up = Up([*UP, "--set", "episode.timeout_s=30"], marker)
+    up.wait_line("all services up", 240)
+    assert len(processes_with(marker)) == 5
+    t = time.monotonic()
+    up.p.kill()
+    up.p.wait()
+    while processes_with(marker) and time.monotonic() - t < 5.0:
+        time.sleep(0.05)
+    gone = time.monotonic() - t
+    assert processes_with(marker) == [] and gone < 2.0
