@@ -17,9 +17,9 @@ messages it builds itself (`Stamper`). What they share lives here:
   of a dead incarnation, a stamp older than the last accepted one stale, a stamp
   further ahead than the protocol allows (`ahead_s`, plus the wall time since the
   last in realtime) from the future. A rejected message changes nothing; the verdict
-  names the reason, which the shell counts in health. A message with the stamp of the last accepted one
-  (and a new seq) is a `REPEAT`: the plant re-offering a tick, or a service
-  answering one again; lockstep answers it from the output it cached.
+  names the reason, which the shell counts in health. A message with the stamp of the
+  last accepted one (and a new seq) is a `REPEAT`: the plant re-offering a tick, or a
+  service answering one again; lockstep answers it from the output it cached.
 - **Episodes** (`Episodes`): the plant names each episode it starts
   (`header.episode`), and every message computed from it carries that name on.
   Each service keeps its state per episode, for the two most recent: a message of
