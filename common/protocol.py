@@ -15,9 +15,13 @@ messages it builds itself (`Stamper`). What they share lives here:
   (`header.source`) and publisher process (`header.boot`): a seq no greater than the
   last accepted one is a duplicate, a boot older than the last accepted one a message
   of a dead incarnation, a stamp older than the last accepted one stale, a stamp
-  further ahead than the protocol allows (`ahead_s`, plus the wall time since the
-  last in realtime) from the future. A rejected message changes nothing; the verdict
-  names the reason, which the shell counts in health. A message with the stamp of the
+  further ahead than the protocol allows from the future: in lockstep `ahead_s` past
+  the last accepted stamp; in realtime `ahead_s` (and some slack) past the source's
+  clock, the largest stamp less receive time seen (a message delivered late never
+  raises it). `FUTURE_RUN` such messages in a row from one process are taken as its
+  clock having moved and accepted, so that no judgement stalls a consumer for good.
+  A rejected message changes nothing but that count; the verdict names the reason,
+  which the shell counts in health. A message with the stamp of the
   last accepted one (and a new seq) is a `REPEAT`: the plant re-offering a tick, or a
   service answering one again; lockstep answers it from the output it cached.
 - **Episodes** (`Episodes`): the plant names each episode it starts
@@ -37,8 +41,9 @@ from typing import Any, Generic, TypeVar
 from common.messages import Header, InputRef, Message
 
 EPS = 1e-6                 # stamps are sums of the plant's period: equal within this
-REALTIME_SLACK_S = 0.5     # realtime: how far a stamp may run ahead of the wall time since
-                           # the last accepted one (transport jitter between two messages)
+REALTIME_SLACK_S = 0.5     # realtime: how far a stamp may run ahead of the source's clock
+                           # (the jitter of the most prompt delivery seen)
+FUTURE_RUN = 3             # consecutive "future" messages of one process that are its clock
 
 NEW = "new"                # verdicts that accept
 REPEAT = "repeat"
@@ -57,11 +62,14 @@ class Out:
 
 @dataclass(frozen=True)
 class Seen:
-    """The last message accepted from one source."""
+    """The last message accepted from one source, and its clock."""
     boot: int
     seq: int
     stamp: float
     wall: float
+    offset: float                 # the largest stamp - receive wall time seen
+    futures: int = 0              # "future" messages since, in a row
+    future_seq: int = -1
 
 
 @dataclass(frozen=True)
@@ -96,16 +104,39 @@ def check(order: Order, h: Header, wall: float, ahead_s: float, realtime: bool,
         return "duplicate"
     if h.stamp < last.stamp - EPS:
         return "stale"
-    allowed = ahead_s + (max(wall - last.wall, 0.0) + REALTIME_SLACK_S if realtime else 0.0)
-    if h.stamp > last.stamp + allowed + EPS:
-        return "future"
+    if realtime:
+        beyond = h.stamp - wall > last.offset + ahead_s + REALTIME_SLACK_S
+    else:
+        beyond = h.stamp > last.stamp + ahead_s + EPS
+    if beyond:
+        moved = last.futures >= FUTURE_RUN - 1 and h.seq > last.future_seq
+        return NEW if moved else "future"
     return REPEAT if abs(h.stamp - last.stamp) <= EPS else NEW
 
 
 def accept(order: Order, h: Header, wall: float) -> Order:
     """`order` with `h` accepted (bound to its source if it was the first)."""
-    return Order({**order.seen, h.source: Seen(h.boot, h.seq, h.stamp, wall)},
+    last = order.last(h.source)
+    offset = h.stamp - wall
+    if last is not None and h.boot == last.boot:
+        offset = max(offset, last.offset)
+    return Order({**order.seen, h.source: Seen(h.boot, h.seq, h.stamp, wall, offset)},
                  order.bound or h.source)
+
+
+def judge(order: Order, h: Header, wall: float, ahead_s: float, realtime: bool,
+          owner: str = "") -> tuple[Order, str]:
+    """`check` and its consequence: the order with the message accepted, or with a
+    "future" one counted (FUTURE_RUN), or unchanged."""
+    verdict = check(order, h, wall, ahead_s, realtime, owner)
+    if verdict in ACCEPTED:
+        return accept(order, h, wall), verdict
+    last = order.last(h.source)
+    if verdict == "future" and last is not None and h.boot >= last.boot:
+        run = last.futures + 1 if h.seq > last.future_seq else 1
+        return Order({**order.seen, h.source: replace(last, futures=run, future_seq=h.seq)},
+                     order.bound), verdict
+    return order, verdict
 
 
 T = TypeVar("T")
@@ -135,6 +166,15 @@ def context(episodes: Episodes[T], episode: int, fresh: Callable[[], T]) -> T:
     """The context of `episode`, or a fresh one."""
     ctx = episodes.get(episode)
     return fresh() if ctx is None else ctx
+
+
+R = TypeVar("R")
+
+
+def after_rejection(run: R, episode: int, ctx: Any, counted: bool) -> R:
+    """A service's run after it rejected a message of `episode`: unchanged, or where the
+    rejection was `counted` (a "future" run, `judge`) with that context put back."""
+    return replace(run, episodes=run.episodes.put(episode, ctx)) if counted else run
 
 
 class Stamper:

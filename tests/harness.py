@@ -111,9 +111,11 @@ class Bus:
         args = [PY, "-m", "deploy.cli", "router"]
         for ep in self.listen:
             args += ["--listen", ep]
-        p = Proc(args, self.tmp / "router.log")
+        log = self.tmp / "router.log"
+        before = log.read_text().count("router listening") if log.exists() else 0
+        p = Proc(args, log)
         deadline = time.monotonic() + 30
-        while "router listening" not in p.tail():
+        while log.read_text().count("router listening") <= before:
             assert time.monotonic() < deadline and p.p.poll() is None, p.tail()
             time.sleep(0.05)
         return p
@@ -421,3 +423,139 @@ def cmdline(pid: int) -> str:
 def processes_with(marker: str) -> list[int]:
     """The pids of the processes whose command line names `marker`."""
     return [int(p) for p in os.listdir("/proc") if p.isdigit() and marker in cmdline(int(p))]
+
+
+# ----------------------------------------------------------------------------- the network
+class Namespace:
+    """A network namespace joined to this one by a veth pair: `host_ip` on this side,
+    `ip` inside. `cut()` / `mend()` take the link down and up. Made by the test, removed
+    by it (`ip netns`, root)."""
+
+    def __init__(self, tag: str, subnet: int):
+        self.name, self.host_dev, self.dev = f"vns{tag}", f"vh{tag}", f"vn{tag}"
+        self.host_ip, self.ip = f"10.{subnet}.0.1", f"10.{subnet}.0.2"
+        run = self._run
+        run("ip", "netns", "add", self.name)
+        try:
+            run("ip", "link", "add", self.host_dev, "type", "veth", "peer", "name", self.dev)
+            run("ip", "link", "set", self.dev, "netns", self.name)
+            run("ip", "addr", "add", f"{self.host_ip}/24", "dev", self.host_dev)
+            run("ip", "link", "set", self.host_dev, "up")
+            self.exec_("ip", "addr", "add", f"{self.ip}/24", "dev", self.dev)
+            self.exec_("ip", "link", "set", self.dev, "up")
+            self.exec_("ip", "link", "set", "lo", "up")
+        except BaseException:
+            self.remove()
+            raise
+
+    @staticmethod
+    def _run(*args: str) -> None:
+        subprocess.run(args, check=True, capture_output=True, timeout=30)
+
+    def exec_(self, *args: str) -> None:
+        self._run("ip", "netns", "exec", self.name, *args)
+
+    @property
+    def prefix(self) -> list[str]:
+        return ["ip", "netns", "exec", self.name]
+
+    def cut(self) -> None:
+        self._run("ip", "link", "set", self.host_dev, "down")
+
+    def mend(self) -> None:
+        self._run("ip", "link", "set", self.host_dev, "up")
+
+    def remove(self) -> None:
+        subprocess.run(["ip", "link", "del", self.host_dev], capture_output=True, timeout=30)
+        subprocess.run(["ip", "netns", "del", self.name], capture_output=True, timeout=30)
+
+    def __enter__(self) -> Namespace:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.remove()
+
+
+class Delay:
+    """A TCP proxy on loopback that delays what it forwards, in user space (this kernel has
+    no netem): every chunk by `delay_s`, and a fraction `loss` of them by `retransmit_s`
+    more, as TCP delivers a lost segment once it is sent again. Order is kept."""
+
+    def __init__(self, target: tuple[str, int], delay_s: float = 0.02, loss: float = 0.01,
+                 retransmit_s: float = 0.2, seed: int = 0):
+        import random
+        import socket
+        self.target, self.delay_s, self.loss, self.retransmit_s = (target, delay_s, loss,
+                                                                    retransmit_s)
+        self._rng = random.Random(seed)
+        self._rng_lock = threading.Lock()
+        self.chunks = self.slowed = 0
+        self._srv = socket.socket()
+        self._srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self._srv.bind(("127.0.0.1", 0))
+        self._srv.listen(16)
+        self.port = self._srv.getsockname()[1]
+        self._stop = threading.Event()
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        import socket
+        while not self._stop.is_set():
+            try:
+                a, _ = self._srv.accept()
+            except OSError:
+                return
+            b = socket.create_connection(self.target)
+            for s in (a, b):
+                s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            for src, dst in ((a, b), (b, a)):
+                threading.Thread(target=self._pipe, args=(src, dst), daemon=True).start()
+
+    def _pipe(self, src: Any, dst: Any) -> None:
+        import collections
+        q: collections.deque[tuple[float, bytes]] = collections.deque()
+        cv = threading.Condition()
+
+        def send() -> None:
+            while True:
+                with cv:
+                    cv.wait_for(lambda: q)
+                    due, data = q[0]
+                wait = due - time.monotonic()
+                if wait > 0:
+                    time.sleep(wait)
+                with cv:
+                    q.popleft()
+                if not data:
+                    dst.close()
+                    return
+                try:
+                    dst.sendall(data)
+                except OSError:
+                    return
+        threading.Thread(target=send, daemon=True).start()
+        last = 0.0
+        while True:
+            try:
+                data = src.recv(65536)
+            except OSError:
+                data = b""
+            with self._rng_lock:
+                slow = bool(data) and self._rng.random() < self.loss
+                self.chunks += 1
+                self.slowed += slow
+            due = max(last, time.monotonic() + self.delay_s + (self.retransmit_s if slow else 0))
+            last = due
+            with cv:
+                q.append((due, data))
+                cv.notify()
+            if not data:
+                return
+
+    @property
+    def endpoint(self) -> str:
+        return f"tcp/127.0.0.1:{self.port}"
+
+    def close(self) -> None:
+        self._stop.set()
+        self._srv.close()

@@ -8,7 +8,7 @@ import pytest
 
 from common.config import load_config
 from common.messages import Cmd, Depth, Heartbeat, InputRef, Map, State
-from common.protocol import NEW, REPEAT, Episodes, Order, Out, Stamper, accept, check
+from common.protocol import NEW, REPEAT, Episodes, Order, Out, Stamper, accept, check, judge
 from common.supervision import Watch, on_beat
 from deploy.runner import Cores
 from services.mapper import protocol as mapper
@@ -72,6 +72,29 @@ def test_acceptance_per_source_and_boot():
         "not from the plant")
     assert check(o, replace(h, source="plant/7"), 100.0, 0.1, False, "plant") == (
         "not this episode's plant (plant/0)")
+
+
+def test_realtime_acceptance_follows_the_source_clock_not_a_late_delivery():
+    """After a cut link the plant's queued states arrive in a burst with the current ones:
+    one that came late must not make the current ones look like the future (this had
+    stalled the sensor for the rest of an episode)."""
+    h = stamp("plant/0", State, Out("state", 3.0, {"x": np.zeros(6), "z": 0.0,
+                                                   "u_applied": np.zeros(2), "tick": 30,
+                                                   "authority": ""})).header
+    o = accept(Order(), h, 100.0)                              # prompt: the clock is -97
+    o = accept(o, replace(h, seq=40, stamp=3.84), 102.0)        # queued, delivered late
+    assert check(o, replace(h, seq=101, stamp=5.06), 102.001, 0.1, True) == NEW
+    assert check(o, replace(h, seq=101, stamp=9.0), 102.001, 0.1, True) == "future"
+    # a source whose clock really moved: accepted after FUTURE_RUN in a row
+    order, verdicts = o, []
+    for i in range(4):
+        order, v = judge(order, replace(h, seq=200 + i, stamp=12.0 + 0.02 * i), 102.1, 0.1,
+                         True)
+        verdicts.append(v)
+    assert verdicts == ["future", "future", NEW, NEW]
+    once, v = judge(o, replace(h, seq=300, stamp=50.0), 102.1, 0.1, True)   # one alone:
+    assert v == "future" and judge(once, replace(h, seq=301, stamp=5.1), 102.1, 0.1,
+                                   True)[1] == NEW                         # then as before
 
 
 def test_episodes_keep_the_two_most_recent():
@@ -164,8 +187,10 @@ def test_lockstep_plant_reoffers_its_pending_tick_then_gives_up(cores):
     assert [o.topic for o in outs] == ["events", "state"]
     assert outs[0].fields["kind"] == "degraded" and "mapper" in outs[0].fields["detail"]
     assert outs[1].stamp == 0.0
-    run, outs = plant.lockstep_idle(p, run, 102.0)
+    run, outs = plant.lockstep_idle(p, run, 102.0, "no heartbeat: mapper")
     assert [o.topic for o in outs] == ["state"]               # re-offered again, no new event
+    run, outs = plant.lockstep_idle(p, run, 103.0, "no heartbeat: mapper, planner")
+    assert [o.topic for o in outs] == ["events", "state"]     # ... but when it names others
     run, outs = plant.lockstep_idle(p, run, 105.5)
     assert run.sim.outcome == plant.ABORTED and outs[0].fields["kind"] == plant.ABORTED
     run2, _ = plant.start(p, EP, 100.0)
@@ -336,3 +361,17 @@ def test_realtime_solves_on_each_new_map_and_once_a_tick_without_one():
     assert not due(5.02, 5.06, True, dt, 0.04)             # two maps in one tick: one solve
     assert not due(5.02, 5.12, False, dt, 0.10)            # no new map: wait 1.5 ticks ...
     assert due(5.02, 5.18, False, dt, 0.16)                # ... then solve on the last one
+
+
+@pytest.mark.parametrize("outage_s", [0.5, 1.0, 2.0, 5.0, 10.0])
+def test_the_vehicle_drives_on_after_a_command_outage(outage_s):
+    """In-process, simulated realtime: the planner cut off at t = 3 s for `outage_s` (the
+    plant brakes on stale commands), then back as its node resumes. Shifting its nominal
+    past what the plant did had left the vehicle braking at a standstill until the
+    timeout after outages of 5 s and more; checked against the plant's applied control,
+    the warm start starts afresh and the vehicle reaches the goal."""
+    from deploy.runner import run_episode
+    cfg = load_config(overrides=["planner.samples=256", 'episode.scenario="open-field"'])
+    r = run_episode(cfg, planner_link=lambda t: not (3.0 - 1e-9 <= t < 3.0 + outage_s - 1e-9))
+    assert r.outcome == "success", (r.outcome, r.sim_time_s)
+    assert r.stale_steps >= round((outage_s - cfg.plant.cmd_timeout_s) * cfg.plant.rate_hz)

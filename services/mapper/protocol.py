@@ -30,9 +30,9 @@ from common.protocol import (
     Episodes,
     Order,
     Out,
-    accept,
-    check,
+    after_rejection,
     context,
+    judge,
     ref,
 )
 from services.mapper import core
@@ -97,15 +97,16 @@ def on_depth(p: MapperProtocolParams, run: MapperRun, d: Depth, wall: float
     if problem:
         return run, problem, ()
     ctx = context(run.episodes, h.episode, MapperCtx)
-    verdict = check(ctx.order, h, wall, p.ahead_s, not p.lockstep, "sensor")
+    order, verdict = judge(ctx.order, h, wall, p.ahead_s, not p.lockstep, "sensor")
     if verdict == NEW and ctx.stamp is not None:        # judged against the map, too
         if h.stamp < ctx.stamp - EPS:
-            verdict = "stale"
+            verdict, order = "stale", ctx.order
         elif h.stamp <= ctx.stamp + EPS:
             verdict = REPEAT
     if verdict not in ACCEPTED:
-        return run, verdict, ()
-    ctx = replace(ctx, order=accept(ctx.order, h, wall))
+        return after_rejection(run, h.episode, replace(ctx, order=order),
+                               order is not ctx.order), verdict, ()
+    ctx = replace(ctx, order=order)
     outs: tuple[Out, ...] = ()
     if verdict == REPEAT:
         if p.lockstep and ctx.published is not None and abs(ctx.published.stamp - h.stamp) <= EPS:

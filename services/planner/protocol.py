@@ -49,9 +49,9 @@ from common.protocol import (
     Episodes,
     Order,
     Out,
-    accept,
-    check,
+    after_rejection,
     context,
+    judge,
     on_tick,
     ref,
 )
@@ -143,10 +143,11 @@ def on_state(p: PlannerProtocolParams, run: PlannerRun, msg: State, wall: float
              ) -> tuple[PlannerRun, str, tuple[Out, ...]]:
     h = msg.header
     ctx = context(run.episodes, h.episode, PlannerCtx)
-    verdict = check(ctx.states, h, wall, p.state_ahead_s, not p.lockstep, "plant")
+    states, verdict = judge(ctx.states, h, wall, p.state_ahead_s, not p.lockstep, "plant")
     if verdict not in ACCEPTED:
-        return run, verdict, ()
-    ctx = replace(ctx, states=accept(ctx.states, h, wall))
+        return after_rejection(run, h.episode, replace(ctx, states=states),
+                               states is not ctx.states), verdict, ()
+    ctx = replace(ctx, states=states)
     outs: tuple[Out, ...] = ()
     boundary = on_tick(h.stamp, p.dt)
     if p.lockstep:
@@ -168,10 +169,11 @@ def on_map(p: PlannerProtocolParams, run: PlannerRun, m: Map, wall: float
     if problem:
         return run, problem
     ctx = context(run.episodes, h.episode, PlannerCtx)
-    verdict = check(ctx.maps, h, wall, p.map_ahead_s, not p.lockstep, "mapper")
+    maps, verdict = judge(ctx.maps, h, wall, p.map_ahead_s, not p.lockstep, "mapper")
     if verdict not in ACCEPTED:
-        return run, verdict
-    ctx = replace(ctx, maps=accept(ctx.maps, h, wall))
+        return after_rejection(run, h.episode, replace(ctx, maps=maps),
+                               maps is not ctx.maps), verdict
+    ctx = replace(ctx, maps=maps)
     if verdict == NEW:
         if p.lockstep:
             if ctx.last_t is None or h.stamp > ctx.last_t + EPS:

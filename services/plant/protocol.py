@@ -28,7 +28,8 @@ drives on.
 When none has come for `plant.reoffer_s` it publishes that state again (a re-offer:
 same stamp, new seq), and again every `reoffer_s`, so that a service that restarted or
 lost a message on the way answers it; after `plant.lockstep_wait_s` without an answer
-the episode ends as `aborted`. A restarted plant `resume`s the episode from the newest
+the episode ends as `aborted`. Each "waiting" event names the services whose heartbeat
+has stopped, raised again when that changes. A restarted plant `resume`s the episode from the newest
 tick state on the bus (the sensor and planner hold it), bit for bit where it left off.
 """
 
@@ -94,6 +95,7 @@ class PlantRun:
     degraded_since: float = 0.0        # sim time (lockstep waits: wall time)
     offered_wall: float = 0.0          # lockstep: the pending tick's last offer
     waiting_since: float = 0.0         # lockstep: its first
+    silent: str = ""                   # lockstep: what the last "waiting" event named
     stale_steps: int = 0
 
     @property
@@ -272,7 +274,7 @@ def lockstep_tick(p: PlantProtocolParams, run: PlantRun, wall: float
     if run.degraded.startswith("waiting"):
         outs += (event_out(run, "recovered",
                            f"answered after {wall - run.waiting_since:.1f} s"),)
-        run = replace(run, degraded="")
+        run = replace(run, degraded="", silent="")
     for _ in range(p.sim.steps_per_tick):
         run, step_outs = _step(p, run)
         outs += step_outs
@@ -302,10 +304,10 @@ def lockstep_idle(p: PlantProtocolParams, run: PlantRun, wall: float, missing: s
         why = f"no command for t={sim.t:.2f} in {waited:.0f} s" + (
             f" ({missing})" if missing else "")
         return run, (event_out(run, ABORTED, why), state_out(p, run))
-    if not run.degraded.startswith("waiting"):
+    if not run.degraded.startswith("waiting") or missing != run.silent:
         why = f"waiting: no command for t={run.sim.t:.2f} after {waited:.1f} s" + (
             f" ({missing})" if missing else "")
         outs += (event_out(run, "degraded", why),)
-        run = replace(run, degraded=why, degraded_since=run.sim.t)
+        run = replace(run, degraded=why, degraded_since=run.sim.t, silent=missing)
     inputs = () if run.cmd is None else (ref(p.cmd_key, run.cmd),)
     return replace(run, offered_wall=wall), (*outs, state_out(p, run, inputs))

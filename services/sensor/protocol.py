@@ -27,9 +27,9 @@ from common.protocol import (
     Episodes,
     Order,
     Out,
-    accept,
-    check,
+    after_rejection,
     context,
+    judge,
     on_tick,
     ref,
 )
@@ -85,10 +85,11 @@ def on_state(p: SensorParams, run: SensorRun, msg: State, wall: float
              ) -> tuple[SensorRun, str, tuple[Out, ...]]:
     h = msg.header
     ctx = context(run.episodes, h.episode, SensorCtx)
-    verdict = check(ctx.order, h, wall, p.ahead_s, not p.lockstep, "plant")
+    order, verdict = judge(ctx.order, h, wall, p.ahead_s, not p.lockstep, "plant")
     if verdict not in ACCEPTED:
-        return run, verdict, ()
-    ctx = replace(ctx, order=accept(ctx.order, h, wall))
+        return after_rejection(run, h.episode, replace(ctx, order=order),
+                               order is not ctx.order), verdict, ()
+    ctx = replace(ctx, order=order)
     outs: tuple[Out, ...] = ()
     t = h.stamp
     if verdict == REPEAT:
