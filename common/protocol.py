@@ -196,6 +196,13 @@ class Stamper:
         return msg
 
 
+def newer(held: Message | None, msg: Message) -> bool:
+    """Whether `msg` is at least as new as `held` (episode, then stamp): what a service keeps
+    to answer a restarted one."""
+    return held is None or (msg.header.episode, msg.header.stamp) >= (held.header.episode,
+                                                                       held.header.stamp)
+
+
 def on_tick(stamp: float, tick_s: float) -> bool:
     """Whether a stamp falls on a control tick boundary."""
     k = round(stamp / tick_s)

@@ -457,6 +457,9 @@ def table(result: dict[str, Any]) -> str:
     kind = result["benchmark"]
     if kind == "planner":
         return planner_table(result)
+    if kind == "faults":
+        from deploy.faults import faults_table
+        return faults_table(result)
     head = f"{kind}: {result['device']} ({result['backend']}, jax {result['jax']})"
     if kind == "record":
         st = result["settings"]
@@ -536,6 +539,13 @@ def main(cfg: Config, what: str, samples: list[int], controllers: list[str], rep
         result = bench_mapper(cfg, reps)
     elif what == "bus":
         result = bench_bus(cfg, reps)
+    elif what == "faults":
+        import tempfile
+        from pathlib import Path
+
+        from deploy.faults import bench_faults
+        with tempfile.TemporaryDirectory(prefix="vamppi-faults-") as tmp:
+            result = bench_faults(cfg, Path(tmp))
     else:
         raise ValueError(f"unknown benchmark {what!r}")
     print(json.dumps(result) if as_json else table(result), flush=True)

@@ -486,7 +486,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_scenario)
 
     p = sub.add_parser("bench", help="speed benchmarks (a table, or JSON with --json)")
-    p.add_argument("what", choices=("planner", "mapper", "bus", "pipeline", "peer", "record"))
+    p.add_argument("what", choices=("planner", "mapper", "bus", "pipeline", "peer", "record",
+                                    "faults"))
     p.add_argument("--samples", dest="samples_list",
                    help="sample counts K (planner, peer: 400,800,1000,4000; pipeline: 800)")
     p.add_argument("--controllers", help="planner: va,deterministic; pipeline: va")

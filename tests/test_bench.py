@@ -91,3 +91,15 @@ def test_pipeline_bench_runs_the_services_in_realtime_and_follows_the_chain():
     assert c["controller"] == "deterministic" and c["samples"] == 16
     assert c["commands"] > 3 and c["chains"] > 3 and c["command_rate_hz"] > 0
     assert 0 < c["end_to_end"]["median_ms"] <= c["end_to_end"]["p95_ms"]
+
+
+def test_faults_table_renders_the_committed_figures():
+    import json
+    from pathlib import Path
+
+    from deploy.bench import table
+    result = json.loads((Path(__file__).parent.parent / "docs/bench/faults-cpu.json").read_text())
+    text = table(result)
+    assert text.count("| supervised |") == 8 and "| lost at speed | realtime | router |" in text
+    assert all(c["outcome"] in ("success", "timeout") for c in result["cases"])
+    assert all(c["bit_identical"] for c in result["cases"] if c["case"] == "supervised")

@@ -11,8 +11,18 @@ import pytest
 
 from common.config import load_config
 from common.messages import decode
+from deploy.faults import (
+    Delay,
+    Pipeline,
+    Rogue,
+    Up,
+    json_lines,
+    processes_with,
+    rejections,
+    run_with_cut,
+)
+from deploy.recording import iter_messages
 from deploy.runner import run_episode
-from tests.harness import Bus, Rogue, rejections
 
 pytestmark = pytest.mark.integration
 
@@ -28,14 +38,11 @@ def reference():
 def test_lockstep_resumes_bit_for_bit_after_a_restart(name, reference, tmp_path):
     """SIGKILL mid-episode, a fresh process: the episode goes on where it was and its
     trajectory is the undisturbed one's, bit for bit."""
-    with Bus(SHORT, tmp_path) as b:
+    with Pipeline(SHORT, tmp_path) as b:
         b.up()
         b.wait(lambda: b.t >= 1.0, 120, "t >= 1 s")
         if name == "router":
-            b.router.signal(signal.SIGKILL)
-            b.router.p.wait()
-            time.sleep(1.0)
-            b.router = b.start_router()
+            b.restart_router(1.0)
         else:
             b.kill(name)
             time.sleep(0.5)
@@ -55,7 +62,7 @@ def test_lockstep_resumes_bit_for_bit_after_a_restart(name, reference, tmp_path)
 def test_hostile_messages_change_nothing_in_lockstep(reference, tmp_path):
     """Once each: a duplicate, a stale, a future-stamped, another client's, a wrong-size
     or malformed and a forged message on every topic the services read."""
-    with Bus(SHORT, tmp_path) as b:
+    with Pipeline(SHORT, tmp_path) as b:
         b.up()
         rogue = Rogue(b.endpoint, b.cfg.episode.vehicle, at=10)
         assert b.wait_outcome().kind == "timeout"
@@ -88,7 +95,7 @@ def test_every_service_exits_within_a_second_of_sigterm(clock, tmp_path):
     planner stopped), and a planner in the middle of a cold compilation."""
     over = [*SHORT, f'episode.clock="{clock}"', "episode.timeout_s=30"]
     took = {}
-    with Bus(over, tmp_path) as b:
+    with Pipeline(over, tmp_path) as b:
         b.up()
         b.wait(lambda: b.t >= 0.5, 120, "t >= 0.5 s")
         b.kill("planner", signal.SIGSTOP)
@@ -120,7 +127,7 @@ def test_hostile_messages_do_not_stop_a_realtime_episode(tmp_path):
     keep one message per source, so of the variants that claim the real publisher only the
     last reaches the service (the others are counted as superseded); another client's are
     rejected on every topic."""
-    with Bus(RT, tmp_path) as b:
+    with Pipeline(RT, tmp_path) as b:
         b.up()
         rogue = Rogue(b.endpoint, b.cfg.episode.vehicle, at=30)
         ev = b.wait_outcome()
@@ -139,15 +146,12 @@ def test_hostile_messages_do_not_stop_a_realtime_episode(tmp_path):
 def test_realtime_loss_of_a_service_stops_the_vehicle_and_it_drives_on(name, tmp_path):
     """Killed at speed: the plant brakes to a standstill (perception or commands stale);
     restarted, the service rejoins, the vehicle drives on and reaches the goal."""
-    with Bus(RT, tmp_path) as b:
+    with Pipeline(RT, tmp_path) as b:
         b.up()
         b.wait(lambda: b.t >= 4.0, 120, "t >= 4 s")
         v0 = b.speed
         if name == "router":
-            b.router.signal(signal.SIGKILL)
-            b.router.p.wait()
-            time.sleep(2.0)
-            b.router = b.start_router()
+            b.restart_router(2.0)
         else:
             b.kill(name)
         if name not in ("plant", "router"):
@@ -172,7 +176,7 @@ def test_realtime_loss_of_a_service_stops_the_vehicle_and_it_drives_on(name, tmp
 def test_lockstep_without_the_mapper_stops_safely_and_says_why(tmp_path):
     """No supervisor, the mapper gone: the plant re-offers, names the silent service, and
     ends the episode as aborted after plant.lockstep_wait_s."""
-    with Bus([*SHORT, "plant.lockstep_wait_s=4.0"], tmp_path) as b:
+    with Pipeline([*SHORT, "plant.lockstep_wait_s=4.0"], tmp_path) as b:
         b.up()
         b.wait(lambda: b.t >= 0.5, 120, "t >= 0.5 s")
         b.kill("mapper")
@@ -185,6 +189,21 @@ def test_lockstep_without_the_mapper_stops_safely_and_says_why(tmp_path):
 UP = ["--samples", "64", "--set", "episode.timeout_s=3.0", "--scenario", "open-field"]
 
 
+def test_vamppi_up_restarts_a_wedged_planner_in_realtime():
+    marker = f"suprt{os.getpid()}"
+    up = Up([*UP, "--set", "episode.timeout_s=40", "--clock", "realtime"], marker)
+    up.wait_line("all services up", 240)
+    up.wait_line("event authority", 60)
+    time.sleep(3.0)                                         # at speed
+    t = time.monotonic()
+    os.kill(up.child("planner"), signal.SIGSTOP)
+    detected = up.wait_line('"restarting"', 30) - t
+    summary = up.finish()
+    assert summary["outcome"] == "success" and summary["restarts"] == {"planner": 1}
+    assert detected < 2.0
+    assert "commands stale" in up.stderr()
+
+
 @pytest.mark.parametrize("name,sig", [(n, signal.SIGSTOP) for n in
                                       ("plant", "sensor", "mapper", "planner")]
                          + [("planner", signal.SIGKILL)])
@@ -192,8 +211,6 @@ def test_vamppi_up_restarts_a_wedged_or_killed_service(name, sig, reference, tmp
     """A service stopped (its liveliness token stays up) or killed mid-episode: `vamppi up`
     sees its heartbeat miss the deadline within about a second, kills it, starts another;
     the lockstep episode completes as the undisturbed one, bit for bit."""
-    from deploy.recording import iter_messages
-    from tests.harness import Up, json_lines, processes_with
     marker = f"sup{name}{sig}x{os.getpid()}"
     rec = tmp_path / "up.mcap"
     up = Up([*UP, "--record", str(rec)], marker)
@@ -224,7 +241,6 @@ def test_vamppi_up_restarts_a_wedged_or_killed_service(name, sig, reference, tmp
 
 
 def test_vamppi_up_gives_up_naming_the_service_and_exits_non_zero():
-    from tests.harness import Up, processes_with
     marker = f"giveup{os.getpid()}"
     up = Up([*UP, "--set", "supervision.restarts=0"], marker)
     up.wait_line("all services up", 240)
@@ -239,7 +255,6 @@ def test_vamppi_up_gives_up_naming_the_service_and_exits_non_zero():
 
 @pytest.mark.parametrize("clock", ["lockstep", "realtime"])
 def test_kill_9_of_vamppi_up_leaves_no_process_behind(clock):
-    from tests.harness import Up, processes_with
     marker = f"kill9{clock}{os.getpid()}"
     up = Up([*UP, "--set", "episode.timeout_s=30", "--clock", clock], marker)
     up.wait_line("all services up", 240)
@@ -253,30 +268,9 @@ def test_kill_9_of_vamppi_up_leaves_no_process_behind(clock):
     assert processes_with(marker) == [] and gone < 2.0
 
 
-def _cut(overrides, cut_s, tmp_path, at_s):
-    """An episode with the plant in its own network namespace, its link to the router's
-    taken down for `cut_s` at `at_s`: the recorder's statistics, the outcome, when."""
-    from deploy.launch import free_port
-    from tests.harness import Namespace
-    port = free_port()
-    with Namespace(f"{os.getpid() % 10000}{int(cut_s)}", 70 + int(cut_s)) as ns:
-        with Bus(overrides, tmp_path,
-                 listen=[f"tcp/127.0.0.1:{port}", f"tcp/{ns.host_ip}:{port}"], port=port) as b:
-            b.service("plant", endpoint=f"tcp/{ns.host_ip}:{port}", prefix=ns.prefix)
-            b.up(("sensor", "mapper", "planner"))
-            b.wait(lambda: b.t >= at_s, 120, f"t >= {at_s} s")
-            t_cut = b.t
-            ns.cut()
-            time.sleep(cut_s)
-            ns.mend()
-            ev = b.wait_outcome(120)
-            stats = b.close()
-    return b, stats, ev, t_cut
-
-
 @pytest.mark.parametrize("cut_s", [2.0, 12.0])
 def test_lockstep_waits_out_a_cut_link_and_goes_on_bit_for_bit(cut_s, reference, tmp_path):
-    b, stats, ev, _ = _cut(SHORT, cut_s, tmp_path, 1.0)
+    b, stats, ev, _ = run_with_cut(SHORT, cut_s, tmp_path, 1.0)
     assert ev.kind == "timeout"
     assert b.trajectory().tobytes() == reference.tobytes()
 
@@ -288,8 +282,7 @@ def test_a_cut_link_brakes_the_vehicle_which_drives_on_after_and_nothing_is_lost
     at speed: it brakes on stale commands, drives on after the link returns and reaches
     the goal; what it published in the cut reaches the recorder late, and whatever does not
     (uncached heartbeats) is reported seq by seq."""
-    from deploy.recording import iter_messages
-    b, stats, ev, t_cut = _cut(RT, cut_s, tmp_path, 3.0)
+    b, stats, ev, t_cut = run_with_cut(RT, cut_s, tmp_path, 3.0)
     assert ev.kind == "success"
     states = sorted((s.header.stamp, s) for s in (decode(m.data) for m in iter_messages(b.path)
                                                   if m.key.endswith("/plant/state")))
@@ -312,9 +305,8 @@ def test_a_slow_lossy_link_delays_but_does_not_change_the_episode(clock, referen
     """Every service behind a user-space proxy that delays each chunk by 20 ms and 1 % of
     them by 200 ms more (a TCP retransmission): lockstep is bit-identical, realtime
     reaches the goal."""
-    from tests.harness import Delay
     over = SHORT if clock == "lockstep" else RT
-    with Bus(over, tmp_path) as b:
+    with Pipeline(over, tmp_path) as b:
         link = Delay(("127.0.0.1", b.port), delay_s=0.02, loss=0.01, retransmit_s=0.2)
         b.up(endpoint=link.endpoint)
         ev = b.wait_outcome()
@@ -327,19 +319,36 @@ def test_a_slow_lossy_link_delays_but_does_not_change_the_episode(clock, referen
         assert ev.kind == "success"
 
 
+def _stop_each(b, at, hold_s: float) -> None:
+    """Stop each service and the router in turn (SIGSTOP: wedged, token up) for `hold_s`
+    once the episode reaches `at[i]`, then continue it."""
+    for i, name in enumerate(("sensor", "mapper", "planner", "plant", "router")):
+        b.wait(lambda i=i: b.t >= at[i], 120, f"t >= {at[i]}")
+        proc = b.router if name == "router" else b.procs[name]
+        proc.signal(signal.SIGSTOP)
+        time.sleep(hold_s)
+        proc.signal(signal.SIGCONT)
+
+
 def test_realtime_stopped_services_brake_the_vehicle_until_they_go_on(tmp_path):
-    """Each service in turn stopped (SIGSTOP: wedged, token up) for 1.5 s and continued,
-    unsupervised: the plant brakes each time (a stopped plant is the world paused) and the
-    vehicle reaches the goal."""
-    with Bus(RT, tmp_path) as b:
+    """Unsupervised, each service and the router stopped for 1.5 s in turn and continued:
+    the plant brakes each time (a stopped plant is the world paused) and the vehicle
+    reaches the goal."""
+    with Pipeline(RT, tmp_path) as b:
         b.up()
-        for i, name in enumerate(("sensor", "mapper", "planner", "plant")):
-            b.wait(lambda i=i: b.t >= 2.0 + 2.5 * i, 120, "the next stop")
-            b.kill(name, signal.SIGSTOP)
-            time.sleep(1.5)
-            b.kill(name, signal.SIGCONT)
+        _stop_each(b, [2.0, 4.5, 7.0, 9.5, 12.0], 1.5)
         ev = b.wait_outcome()
         kinds = b.kinds()
     assert ev.kind == "success", kinds
     why = [d.split(":")[0] for _, k, d in kinds if k == "degraded"]
     assert why.count("perception stale") >= 2 and "commands stale" in why, kinds
+
+
+def test_lockstep_stopped_services_pause_the_episode_which_goes_on_bit_for_bit(
+        reference, tmp_path):
+    with Pipeline(SHORT, tmp_path) as b:
+        b.up()
+        _stop_each(b, [0.4, 0.9, 1.4, 1.9, 2.4], 1.5)
+        assert b.wait_outcome().kind == "timeout"
+        got = b.trajectory()
+    assert got.tobytes() == reference.tobytes()

@@ -288,14 +288,19 @@ def test_mapper_fuses_each_frame_once_checks_the_camera_and_resumes_from_a_map(c
 
 
 # ----------------------------------------------------------------------------- planner
+def _maps(c: Cores, n: int) -> list[Map]:
+    """The mapper's maps of the first `n` frames."""
+    run, maps = mapper.MapperRun(), []
+    st = Stamper("mapper/0", 1, wall=lambda: 0.0)
+    for f in _frames(c, n):
+        run, _, outs = mapper.on_depth(c.mapper, run, f, 0.0)
+        maps += [st.make(Map, o) for o in outs]
+    return maps
+
+
 def test_planner_pairs_by_stamp_answers_a_repeat_and_checks_the_grid(cores):
     p = cores.planner
-    frames = _frames(cores, 2)
-    mruns, maps = mapper.MapperRun(), []
-    st = Stamper("mapper/0", 1, wall=lambda: 0.0)
-    for f in frames:
-        mruns, _, outs = mapper.on_depth(cores.mapper, mruns, f, 0.0)
-        maps += [st.make(Map, o) for o in outs]
+    maps = _maps(cores, 2)
     small = replace(maps[0], mean=np.zeros((10, 10), np.float32),
                     variance=np.zeros((10, 10), np.float32))
     assert "wrong size" in planner.on_map(p, planner.PlannerRun(), small, 0.0)[1]
@@ -329,12 +334,7 @@ def test_warm_start_follows_the_plant_or_starts_afresh(cores):
 
 def test_a_recovered_planner_solves_as_the_one_that_sent_the_command(cores):
     p = cores.planner
-    frames = _frames(cores, 2)
-    mruns, maps = mapper.MapperRun(), []
-    st = Stamper("mapper/0", 1, wall=lambda: 0.0)
-    for f in frames:
-        mruns, _, outs = mapper.on_depth(cores.mapper, mruns, f, 0.0)
-        maps += [st.make(Map, o) for o in outs]
+    maps = _maps(cores, 2)
     states = [_state(cores, 0.0, 0), _state(cores, 0.1, 1)]
     run = planner.PlannerRun()
     for s, m in zip(states, maps, strict=True):

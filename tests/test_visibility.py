@@ -98,15 +98,21 @@ def random_problem(rng, n=200, steps=12):
     return mean, variance, states, rows, cols
 
 
-def solve_random_problem(vp, rng):
+def solve_random_problem(vp, rng, decayed: float = 0.1):
     """A random problem and the update's decayed variance on it; rows and cols are then
-    the query cells (the five OFFSETS cells of each footprint cell, offset-major)."""
-    mean, variance, states, rows, cols = random_problem(rng)
-    got = np.asarray(decayed_variance(vp, jnp.asarray(mean), jnp.asarray(variance),
-                                      jnp.zeros(2), 0.2, jnp.asarray(states), jnp.asarray(rows),
-                                      jnp.asarray(cols), OFFSETS))
-    rows = np.concatenate([rows + dr for dr, _ in OFFSETS], axis=1)
-    cols = np.concatenate([cols + dc for _, dc in OFFSETS], axis=1)
+    the query cells (the five OFFSETS cells of each footprint cell, offset-major). Drawn
+    again (up to 5 times) until more than `decayed` of the queries decay, so that the
+    comparison has teeth: about one draw in 40 has its trajectories look past the queried
+    cells (5 % decayed at lag 4; 60 seeds: 25-70 %)."""
+    for _ in range(5):
+        mean, variance, states, rows, cols = random_problem(rng)
+        got = np.asarray(decayed_variance(vp, jnp.asarray(mean), jnp.asarray(variance),
+                                          jnp.zeros(2), 0.2, jnp.asarray(states),
+                                          jnp.asarray(rows), jnp.asarray(cols), OFFSETS))
+        rows = np.concatenate([rows + dr for dr, _ in OFFSETS], axis=1)
+        cols = np.concatenate([cols + dc for _, dc in OFFSETS], axis=1)
+        if (got < variance[rows, cols] * 0.999).mean() > decayed:
+            break
     return mean, variance, states, got, rows, cols
 
 
@@ -146,7 +152,7 @@ def test_decayed_variance_matches_the_dense_float64_reference(rng, lag, decel):
         seen.append((k_row[counted], k_col[counted]))
     ref = reference_decay(vp, variance.astype(np.float64), seen, rows, cols)
     np.testing.assert_allclose(got[:lag], variance[rows[:lag], cols[:lag]])   # nothing seen yet
-    # the test has teeth: many queries decayed (60 seeds: 32-70 %; one CI draw 19 %)
+    # the test has teeth: many queries decayed (the problem is drawn so)
     assert (ref < variance[rows, cols] * 0.999).mean() > 0.1
     np.testing.assert_allclose(got, ref, rtol=2e-4, atol=1e-6)
 

@@ -52,6 +52,7 @@ from common.protocol import (
     after_rejection,
     context,
     judge,
+    newer,
     on_tick,
     ref,
 )
@@ -134,11 +135,6 @@ def map_problem(p: PlannerProtocolParams, m: Map) -> str:
     return ""
 
 
-def _newer(held: Any, msg: Any) -> bool:
-    return held is None or (msg.header.episode, msg.header.stamp) >= (held.header.episode,
-                                                                       held.header.stamp)
-
-
 def on_state(p: PlannerProtocolParams, run: PlannerRun, msg: State, wall: float
              ) -> tuple[PlannerRun, str, tuple[Out, ...]]:
     h = msg.header
@@ -157,7 +153,7 @@ def on_state(p: PlannerProtocolParams, run: PlannerRun, msg: State, wall: float
             ctx = replace(ctx, waiting_states=(*ctx.waiting_states, msg)[-PENDING:])
     else:
         ctx = replace(ctx, waiting_states=(msg,))
-    held = msg if (boundary or msg.outcome) and _newer(run.held_state, msg) else run.held_state
+    held = msg if (boundary or msg.outcome) and newer(run.held_state, msg) else run.held_state
     return (replace(run, episodes=run.episodes.put(h.episode, ctx), held_state=held),
             verdict, outs)
 
@@ -180,7 +176,7 @@ def on_map(p: PlannerProtocolParams, run: PlannerRun, m: Map, wall: float
                 ctx = replace(ctx, waiting_maps=(*ctx.waiting_maps, m)[-PENDING:])
         else:
             ctx = replace(ctx, map=m, fresh_map=True)
-    held = m if _newer(run.held_map, m) else run.held_map
+    held = m if newer(run.held_map, m) else run.held_map
     return replace(run, episodes=run.episodes.put(h.episode, ctx), held_map=held), verdict
 
 

@@ -30,6 +30,7 @@ from common.protocol import (
     after_rejection,
     context,
     judge,
+    newer,
     on_tick,
     ref,
 )
@@ -101,7 +102,6 @@ def on_state(p: SensorParams, run: SensorRun, msg: State, wall: float
                       next_frame=(math.floor(t / p.period_s + EPS) + 1) * p.period_s)
         outs = (frame,)
     held = run.held_state
-    if (on_tick(t, p.tick_s) or msg.outcome) and (
-            held is None or (h.episode, t) >= (held.header.episode, held.header.stamp)):
+    if (on_tick(t, p.tick_s) or msg.outcome) and newer(held, msg):
         held = msg
     return replace(run, episodes=run.episodes.put(h.episode, ctx), held_state=held), verdict, outs

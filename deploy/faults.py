@@ -1,8 +1,15 @@
-"""Real processes on a real router for the fault tests: a `vamppi router` process, the
-services as `vamppi service` processes, and the test's own client recording the bus.
+"""Faults, for real: the tools `tests/test_faults.py` and `vamppi bench faults` use.
+
+- `Pipeline`: a `vamppi router` process, the services as `vamppi service` processes and
+  an observer that records the bus (deploy.recording.Recorder) and follows states,
+  events and heartbeats live;
+- `Up`: `vamppi up` as a process, its stderr read live, its children found by name;
+- `Rogue`: another client that sends hostile variants of real messages (`hostile`);
+- `Namespace`: a network namespace on a veth pair whose link can be cut (`ip netns`,
+  root); `Delay`: a TCP proxy that delays and "loses" in user space.
 
 Nothing here fakes a component: a fault is a signal to a process, a router killed and
-started again, a link cut in a network namespace, or messages another client sends.
+started again, a link cut, or messages another client sends.
 """
 
 from __future__ import annotations
@@ -75,7 +82,7 @@ class Proc:
         return self.log.read_text(errors="replace")[-n:]
 
 
-class Bus:
+class Pipeline:
     """A router process, services as processes and an observer that records everything
     (plain and recovering subscriptions, deploy.recording.Recorder) and follows the
     states and events live."""
@@ -97,6 +104,7 @@ class Bus:
         self.recorder = Recorder(self.bus, keys, self.path,
                                  recording_metadata(self.cfg.to_dict(), keys))
         self.events: list[Event] = []
+        self.event_at: list[float] = []          # monotonic arrival of each event
         self.last_state: State | None = None
         self.states_seen = 0
         self.beats: list[tuple[float, Heartbeat]] = []
@@ -119,6 +127,13 @@ class Bus:
             assert time.monotonic() < deadline and p.p.poll() is None, p.tail()
             time.sleep(0.05)
         return p
+
+    def restart_router(self, down_s: float = 1.0) -> None:
+        """SIGKILL the router, and start another on the same port `down_s` later."""
+        self.router.signal(signal.SIGKILL)
+        self.router.p.wait()
+        time.sleep(down_s)
+        self.router = self.start_router()
 
     def service(self, name: str, extra: list[str] = (), endpoint: str | None = None,
                 prefix: list[str] | None = None, env: dict[str, str] | None = None) -> Proc:
@@ -161,6 +176,7 @@ class Bus:
             return
         with self._lock:
             self.events.append(e)
+            self.event_at.append(time.monotonic())
 
     def _on_beat(self, _key: str, payload: bytes) -> None:
         try:
@@ -185,6 +201,14 @@ class Bus:
         with self._lock:
             done = [e for e in self.events if e.kind in OUTCOMES]
         return done[0] if done else None
+
+    def first_event(self, kind: str, after: float = 0.0) -> tuple[float, Event] | None:
+        """The first event of `kind` that arrived after monotonic time `after`."""
+        with self._lock:
+            for at, e in zip(self.event_at, self.events, strict=True):
+                if e.kind == kind and at >= after:
+                    return at, e
+        return None
 
     def kinds(self) -> list[tuple[float, str, str]]:
         with self._lock:
@@ -247,7 +271,7 @@ class Bus:
                                     np.concatenate([[s.header.stamp], s.x]))
         return np.array([rows[k] for k in sorted(rows)])
 
-    def __enter__(self) -> Bus:
+    def __enter__(self) -> Pipeline:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -559,3 +583,202 @@ class Delay:
     def close(self) -> None:
         self._stop.set()
         self._srv.close()
+
+
+# ----------------------------------------------------------------------------- the figures
+LOCKSTEP = ["planner.samples=64", "episode.timeout_s=3.0", 'episode.scenario="open-field"']
+REALTIME = ["planner.samples=64", 'episode.scenario="open-field"', 'episode.clock="realtime"',
+            "episode.timeout_s=40"]
+
+
+def _recorded_trajectory(path: Path) -> np.ndarray:
+    boots = {decode(m.data, Event).header.boot for m in iter_messages(path)
+             if m.key.endswith("/plant/events")}
+    rows: dict[float, np.ndarray] = {}
+    for m in iter_messages(path):
+        if m.key.endswith("/plant/state"):
+            s = decode(m.data, State)
+            if s.header.boot in boots:
+                rows.setdefault(round(s.header.stamp, 6), np.concatenate([[s.header.stamp],
+                                                                          s.x]))
+    return np.array([rows[k] for k in sorted(rows)])
+
+
+def supervised(service: str, sig: int, tmp: Path, reference: np.ndarray) -> dict[str, Any]:
+    """`vamppi up` in lockstep, `service` stopped or killed mid-episode: from the signal to
+    the supervisor's verdict, and whether the episode was the undisturbed one."""
+    marker = f"bench{service}{sig}{os.getpid()}"
+    rec = tmp / f"up-{service}-{sig}.mcap"
+    args = [a for o in LOCKSTEP for a in ("--set", o)] + ["--record", str(rec)]
+    up = Up(args, marker)
+    up.wait_line("all services up", 300)
+    time.sleep(0.5)
+    pid = up.child(service)
+    t = time.monotonic()
+    os.kill(pid, sig)
+    detected = up.wait_line('"restarting"', 60, after=t) - t
+    summary = up.finish()
+    got = _recorded_trajectory(rec)
+    return {"case": "supervised", "clock": "lockstep", "service": service,
+            "signal": signal.Signals(sig).name, "detected_s": round(detected, 3),
+            "restarts": summary["restarts"], "outcome": summary["outcome"],
+            "bit_identical": got.shape == reference.shape
+            and got.tobytes() == reference.tobytes()}
+
+
+def _plant_record(path: Path) -> tuple[list[State], list[Event]]:
+    """The plant's states (one per stamp, in stamp order) and events of a recording,
+    those that arrived late included."""
+    states: dict[float, State] = {}
+    events = []
+    for m in iter_messages(path):
+        if m.key.endswith("/plant/state"):
+            s = decode(m.data, State)
+            states.setdefault(round(s.header.stamp, 6), s)
+        elif m.key.endswith("/plant/events"):
+            events.append(decode(m.data, Event))
+    return [states[k] for k in sorted(states)], sorted(events, key=lambda e: e.header.stamp)
+
+
+def _speed(s: State) -> float:
+    return float(np.hypot(s.x[0], s.x[1]))
+
+
+def _after(path: Path, t0: float, t_back: float) -> dict[str, Any]:
+    """From a recording: after sim time t0, the first degraded event, the standstill (time
+    and distance), and the first state moving again after both t_back (when what was lost
+    came back) and the standstill, counted from t_back."""
+    states, events = _plant_record(path)
+    s0 = max((s for s in states if s.header.stamp <= t0), key=lambda s: s.header.stamp)
+    deg = next((e for e in events if e.kind == "degraded" and e.header.stamp >= t0), None)
+    stop = next((s for s in states if s.header.stamp > t0 and _speed(s) < 0.05), None)
+    after = max(t_back, t0 if stop is None else stop.header.stamp)
+    back = next((s for s in states if s.header.stamp > after and _speed(s) > 0.5), None)
+    return {"speed_mps": round(_speed(s0), 2),
+            "degraded": None if deg is None else deg.detail,
+            "degraded_after_sim_s": None if deg is None else round(deg.header.stamp - t0, 3),
+            "standstill_after_sim_s": None if stop is None
+            else round(stop.header.stamp - t0, 3),
+            "standstill_distance_m": None if stop is None
+            else round(float(np.hypot(*(stop.x[3:5] - s0.x[3:5]))), 2),
+            "moving_after_sim_s": None if back is None else round(back.header.stamp - t_back, 3)}
+
+
+def lost_at_speed(name: str, tmp: Path, at_s: float = 4.0) -> dict[str, Any]:
+    """Realtime, no supervisor: `name` killed at speed (the router: started again after
+    2 s), the others started again once the vehicle has stopped. From the recording: what
+    the plant said and when, the way to a standstill, and back to moving once it was
+    started again (simulation seconds, which run with the wall clock in realtime: the
+    restart's own warm-up included)."""
+    with Pipeline(REALTIME, tmp) as p:
+        p.up()
+        p.wait(lambda: p.t >= at_s, 120, f"t >= {at_s}")
+        t0, w0 = p.t, time.monotonic()
+        if name == "router":
+            p.restart_router(2.0)
+        else:
+            p.kill(name)
+            p.wait(lambda: p.speed < 0.05, 60, "a standstill")
+            time.sleep(0.5)
+            p.service(name)
+        t_back = t0 + time.monotonic() - w0   # realtime: the plant's clock runs with ours
+        ev = p.wait_outcome(180)
+        p.close()
+    return {"case": "lost at speed", "clock": "realtime", "service": name,
+            **_after(p.path, t0, t_back), "outcome": ev.kind}
+
+
+def run_with_cut(overrides: list[str], cut_s: float, tmp: Path, at_s: float
+                 ) -> tuple[Pipeline, dict[str, Any], Event, float]:
+    """An episode with the plant in its own network namespace, its link to the router's
+    taken down for `cut_s` once the episode reaches `at_s`: the pipeline (closed), the
+    recorder's statistics, the outcome, the sim time of the cut."""
+    from deploy.launch import free_port
+    port = free_port()
+    with Namespace(f"{os.getpid() % 10000}{int(cut_s)}", 70 + int(cut_s)) as ns, \
+            Pipeline(overrides, tmp, listen=[f"tcp/127.0.0.1:{port}",
+                                             f"tcp/{ns.host_ip}:{port}"], port=port) as p:
+        p.service("plant", endpoint=f"tcp/{ns.host_ip}:{port}", prefix=ns.prefix)
+        p.up(("sensor", "mapper", "planner"))
+        p.wait(lambda: p.t >= at_s, 120, f"t >= {at_s} s")
+        t_cut = p.t
+        ns.cut()
+        time.sleep(cut_s)
+        ns.mend()
+        ev = p.wait_outcome(180)
+        stats = p.close()
+    return p, stats, ev, t_cut
+
+
+def cut_link(cut_s: float, tmp: Path) -> dict[str, Any]:
+    """Realtime, the plant's link cut for `cut_s` at t = 3 s: its way to a standstill, how
+    soon it moved after the link returned, what reached the recorder."""
+    p, stats, ev, t0 = run_with_cut(REALTIME, cut_s, tmp, 3.0)
+    plant = {q["key"].rsplit("/", 1)[1]: q for q in stats["publishers"]
+             if q["source"] == "plant/0"}
+    return {"case": "link cut", "clock": "realtime", "cut_s": cut_s,
+            **_after(p.path, t0, t0 + cut_s), "outcome": ev.kind,
+            "plant_states": {k: plant["state"][k] for k in ("count", "missing", "late")},
+            "plant_events_missing": plant["events"]["missing"],
+            "heartbeats_missing": plant["heartbeat"]["missing"],
+            "heartbeat_gaps": plant["heartbeat"]["gaps"]}
+
+
+def slow_link(tmp: Path, reference_time: float) -> dict[str, Any]:
+    """Realtime with every service behind `Delay` (20 ms, 1 % of chunks 200 ms more)."""
+    with Pipeline(REALTIME, tmp) as p:
+        link = Delay(("127.0.0.1", p.port))
+        p.up(endpoint=link.endpoint)
+        ev = p.wait_outcome(180)
+        kinds = p.kinds()
+        link.close()
+    degraded = [k for k in kinds if k[1] == "degraded"]
+    return {"case": "slow lossy link", "clock": "realtime", "outcome": ev.kind,
+            "time_to_goal_s": ev.time_to_goal_s, "undisturbed_time_to_goal_s": reference_time,
+            "chunks": link.chunks, "chunks_retransmitted": link.slowed,
+            "degraded_events": len(degraded), "degraded": [d for _, _, d in degraded]}
+
+
+def bench_faults(cfg: Config, tmp: Path) -> dict[str, Any]:
+    """Every figure of docs/reliability.md, measured: detection under `vamppi up`, the
+    vehicle's stop and restart when a service is lost at speed, link cuts, a slow link."""
+    from deploy.bench import device_info
+    from deploy.runner import run_episode
+    reference = run_episode(load_config(overrides=LOCKSTEP)).trajectory
+    cases = []
+    for service in SERVICES:
+        for sig in (signal.SIGSTOP, signal.SIGKILL):
+            (tmp / f"{service}{sig}").mkdir()
+            cases.append(supervised(service, sig, tmp / f"{service}{sig}", reference))
+    for name in ("mapper", "sensor", "planner", "router"):
+        (tmp / f"lost-{name}").mkdir()
+        cases.append(lost_at_speed(name, tmp / f"lost-{name}"))
+    if os.geteuid() == 0:
+        for cut in (2.0, 12.0):
+            (tmp / f"cut{cut}").mkdir()
+            cases.append(cut_link(cut, tmp / f"cut{cut}"))
+    rt = run_episode(load_config(overrides=REALTIME), planner_link=lambda t: True)
+    (tmp / "slow").mkdir()
+    cases.append(slow_link(tmp / "slow", rt.time_to_goal_s))
+    return {"benchmark": "faults", **device_info(),
+            "settings": {"lockstep": LOCKSTEP, "realtime": REALTIME,
+                         "heartbeat_deadline_s": cfg.supervision.heartbeat_deadline_s,
+                         "perception_timeout_s": cfg.plant.perception_timeout_s,
+                         "cmd_timeout_s": cfg.plant.cmd_timeout_s}, "cases": cases}
+
+
+def faults_table(result: dict[str, Any]) -> str:
+    lines = [f"faults: {result['device']}", "",
+             "| case | clock | service | signal or cut | detected s | standstill s (m) "
+             "| moving again s | outcome | bit-identical |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for c in result["cases"]:
+        what = c.get("signal") or (f"{c['cut_s']:g} s" if "cut_s" in c else "")
+        det = c.get("detected_s", c.get("degraded_after_sim_s"))
+        stop = (f"{c['standstill_after_sim_s']} ({c['standstill_distance_m']})"
+                if c.get("standstill_after_sim_s") is not None else "")
+        back = c.get("moving_after_sim_s")
+        lines.append(f"| {c['case']} | {c['clock']} | {c.get('service', 'plant')} | {what} "
+                     f"| {'' if det is None else det} | {stop} | {'' if back is None else back} "
+                     f"| {c['outcome']} | {c.get('bit_identical', '')} |")
+    return "\n".join(lines)
