@@ -6,8 +6,10 @@
   thread reading the interpreter's wakeup fd, which the C-level handler writes whatever
   the main thread is doing; the Python-level handler alone runs only when the main thread
   next executes Python.
-- `die_with_parent()`: the kernel sends SIGTERM when the parent dies (Linux
-  PR_SET_PDEATHSIG), so a launcher killed outright leaves no children behind.
+- `die_with_parent()`: the kernel sends SIGKILL when the parent dies (Linux
+  PR_SET_PDEATHSIG), so a launcher killed outright leaves no children behind. Not
+  SIGTERM: a child blocked in a put to the launcher's dead router holds the interpreter
+  lock until the link's lease runs out (10 s), and no Python-level stop runs meanwhile.
 - `when_orphaned(action)`: the portable watch of the same, by polling the parent.
 """
 
@@ -53,7 +55,7 @@ def stop_on_signals(stop: threading.Event, grace_s: float = STOP_GRACE_S,
 PARENT_ENV = "VAMPPI_PARENT"  # the launcher's pid, as it started the child
 
 
-def die_with_parent(sig: int = signal.SIGTERM) -> bool:
+def die_with_parent(sig: int = signal.SIGKILL) -> bool:
     """Ask the kernel for `sig` when the parent process dies; False where it cannot
     (not Linux). Sends it at once if the parent (`$VAMPPI_PARENT` where the launcher set
     it) is already gone."""

@@ -93,9 +93,11 @@ def test_depth_matches_a_brute_force_float64_march(rng, kernel):
 @pytest.mark.skipif(not native.available(), reason="the native ray caster does not build here")
 def test_native_ray_caster_matches_the_jax_form(rng):
     """The same float32 march, step for step: every hit a hit in both, every depth within
-    0.2 mm, half the bisected bracket (0.1 m / 2^8: a ray direction's last bit, from the
-    rotation's summation order, can flip the last bisection); and the same from outside
-    the map, leaving it, looking straight down and up into the sky."""
+    0.4 mm, one bisected bracket (0.1 m / 2^8: a ray direction's last bit, from the
+    rotation's summation order, can flip a bisection, and the secants across two
+    neighbouring brackets of a kinked bilinear surface differ by up to one; 0.23 mm seen);
+    and the same from outside the map, leaving it, looking straight down and up into the
+    sky."""
     cfg = load_config(overrides=["sensor.width_px=64", "sensor.height_px=36"])
     cam = CameraParams.from_config(cfg.sensor)
     cam_jax, cam_native = (dataclasses.replace(cam, kernel=k) for k in ("jax", "native"))
@@ -110,7 +112,7 @@ def test_native_ray_caster_matches_the_jax_form(rng):
         want = render(cam_jax, hm, origin, 0.2, x, y, z, yaw)[0]
         assert got.dtype == np.float32 and got.shape == want.shape
         np.testing.assert_array_equal(got > 0, want > 0)
-        np.testing.assert_allclose(got, want, rtol=0, atol=2e-4)
+        np.testing.assert_allclose(got, want, rtol=0, atol=0.1 / 2**8)
         hits += int((want > 0).sum())
     assert hits > 2000
     # above the highest ground (a block under the camera would put it inside the terrain)
