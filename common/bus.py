@@ -49,11 +49,14 @@ TOPICS: dict[str, tuple[str, str]] = {
     "cmd": ("planner", "vamppi.Cmd"),
     "plan": ("planner", "vamppi.Plan"),
     "stats": ("planner", "vamppi.Stats"),
+    "shadow": ("planner", "vamppi.Plan"),           # a candidate's plans before it drives
+    "handover": ("planner", "vamppi.Handover"),
 }
 SERVICES = ("plant", "sensor", "mapper", "planner")
 # what each service reads (TOPICS names what it writes)
-INPUTS: dict[str, tuple[str, ...]] = {"plant": ("cmd",), "sensor": ("state",),
-                                      "mapper": ("depth",), "planner": ("state", "map")}
+INPUTS: dict[str, tuple[str, ...]] = {"plant": ("cmd", "handover"), "sensor": ("state",),
+                                      "mapper": ("depth",),
+                                      "planner": ("state", "map", "cmd", "handover")}
 HEARTBEAT = "heartbeat"
 # topics whose publisher keeps what it sent for `RECOVERY_S` (zenoh-ext advanced publishers):
 # a subscriber that missed samples of them (a cut link) fetches them late
@@ -80,6 +83,11 @@ def admin_key(vehicle: str, service: str, instance: str, what: str) -> str:
 
 def latest_key(vehicle: str, service: str, instance: str, topic: str) -> str:
     return admin_key(vehicle, service, instance, f"latest/{topic}")
+
+
+def launcher_key(vehicle: str) -> str:
+    """Requests to `vamppi up`'s launcher (JSON: spawn or stop a service instance)."""
+    return f"{PREFIX}/{vehicle}/admin/launcher/0/requests"
 
 
 def topic_of(key: str) -> str:
@@ -347,8 +355,9 @@ class Inbox(Generic[M]):
     At most `max_sources` sources are kept; messages of more are counted and dropped."""
 
     def __init__(self, cls: type[M], key: str, health: Health, maxlen: int = 1,
-                 max_sources: int = 32):
+                 max_sources: int = 32, arrived: threading.Event | None = None):
         self.cls, self.key, self.health = cls, key, health
+        self.arrived = arrived              # set on every message (the node's, shared)
         self.topic = topic_of(key) or key.rsplit("/", 1)[-1]
         self.maxlen, self.max_sources = maxlen, max_sources
         self._q: dict[str, collections.deque[tuple[int, M, float]]] = {}
@@ -378,6 +387,8 @@ class Inbox(Generic[M]):
             q.append((next(self._arrivals), msg, received))
             self.health.messages_in += 1
             self._cv.notify_all()
+        if self.arrived is not None:
+            self.arrived.set()
 
     def _pop_oldest(self) -> tuple[M, float] | None:
         best = None
@@ -456,15 +467,16 @@ class Node:
 
     Use as a context manager; declare subscribers and publishers, then call `ready()` to
     raise the liveliness token once the service can work. The heartbeat (`Heartbeat`
-    every `period_s` on `heartbeat_key`) runs from `__enter__`, status `starting` until
-    `ready()`; its thread beats `ready` only while the main loop calls `progress()` within
-    `deadline_s` (else `stalled`), so that a wedged loop is seen even while the
-    process's transport threads still answer the router.
+    every `heartbeat_s` on `heartbeat_key`, stating `deadline_s` as the time within which
+    the next one comes) runs from `__enter__`, status `starting` until `ready()`; its
+    thread beats `ready` only while the main loop calls `progress()` within `stall_s`
+    (else `stalled`), so that a wedged loop is seen even while the process's transport
+    threads still answer the router.
     """
 
     def __init__(self, bus: BusConfig | Transport, vehicle: str, service: str, instance: str,
                  config_dict: dict[str, Any] | None = None, heartbeat_s: float = 0.1,
-                 deadline_s: float = 1.0):
+                 deadline_s: float = 1.0, stall_s: float | None = None):
         self._bus, self.vehicle, self.service, self.instance = bus, vehicle, service, instance
         self.source = f"{service}/{instance}"
         self.boot = time.time_ns()
@@ -472,6 +484,7 @@ class Node:
         self.config_dict = config_dict or {}
         self.transport: Transport | None = None
         self.heartbeat_s, self.deadline_s = heartbeat_s, deadline_s
+        self.stall_s = deadline_s if stall_s is None else stall_s
         self.role = ""
         self.detail = ""
         self._keep: list[Any] = []
@@ -481,6 +494,7 @@ class Node:
         self._stamp = 0.0
         self._episode = 0
         self._stop_beat = threading.Event()
+        self._arrived = threading.Event()
         self._beat_thread: threading.Thread | None = None
 
     def __enter__(self) -> Node:
@@ -490,7 +504,8 @@ class Node:
             self._keep.append(self.transport.queryable(
                 key, lambda k, key=key, reply=reply: [(key, json.dumps(reply()).encode())]))
         self._beats = TypedPublisher(self.transport, heartbeat_key(self.vehicle, self.service),
-                                     Heartbeat, Stamper(self.source, self.boot), Health())
+                                     Heartbeat, Stamper(self.source, self.boot), Health(),
+                                     drop=True)       # a beat never blocks (nor is queued)
         self._beat_thread = threading.Thread(target=self._beat_loop, daemon=True,
                                              name=f"{self.service}-heartbeat")
         self._beat_thread.start()
@@ -502,7 +517,8 @@ class Node:
             self._beat_thread.join(timeout=1.0)
         if self.transport is not None:
             try:
-                self._status = "stopping"
+                if self._status != "retired":
+                    self._status = "stopping"
                 self._beat()
             except Exception:             # the session may be closing under us
                 pass
@@ -520,7 +536,7 @@ class Node:
 
     def _beat(self) -> None:
         status = self._status
-        if status == "ready" and time.monotonic() - self._progress_wall > self.deadline_s:
+        if status == "ready" and time.monotonic() - self._progress_wall > self.stall_s:
             status = "stalled"
         self._beats.publish(self._stamp, episode=self._episode, status=status, role=self.role,
                             deadline_s=self.deadline_s, detail=self.detail)
@@ -532,6 +548,12 @@ class Node:
             except Exception as exc:      # never let the beat kill the service
                 log.debug("heartbeat not sent: %s", exc)
 
+    def wait_any(self, timeout: float) -> bool:
+        """Block until a message arrives in any of this node's inboxes, or `timeout`."""
+        got = self._arrived.wait(timeout)
+        self._arrived.clear()
+        return got
+
     # topics -----------------------------------------------------------------
     def key(self, topic: str) -> str:
         return topic_key(self.vehicle, topic)
@@ -541,7 +563,8 @@ class Node:
         """An inbox of `topic` (its key, or `key`: a key expression such as every
         heartbeat's)."""
         assert self.transport is not None
-        inbox: Inbox[M] = Inbox(cls, key or self.key(topic), self.health, maxlen)
+        inbox: Inbox[M] = Inbox(cls, key or self.key(topic), self.health, maxlen,
+                                arrived=self._arrived)
         self._keep.append(self.transport.subscriber(
             inbox.key, lambda _k, payload: inbox.on_payload(payload), recover=recover,
             on_miss=lambda src, n: self.health.missed.update({f"{topic} {src}": n})))
@@ -586,6 +609,14 @@ class Node:
             except DecodeError as exc:
                 log.warning("a latest %s from %s is not valid: %s", topic, key, exc)
         return sorted(found, key=lambda m: (m.header.episode, m.header.stamp))
+
+    def retire(self) -> None:
+        """Beat `retired` (the supervisor and the plant take it as gone by design): three
+        times, since a heartbeat may be dropped; the process then exits with RETIRED_EXIT."""
+        self._status = "retired"
+        for _ in range(3):
+            self._beat()
+            time.sleep(0.02)
 
     def ready(self) -> None:
         """Raise this instance's liveliness token: the service is up and warmed."""

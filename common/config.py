@@ -177,6 +177,7 @@ class BusConfig:
 class SupervisionConfig:
     heartbeat_period_s: float = _rng(0.0, lo_open=True)
     heartbeat_deadline_s: float = _rng(0.0, lo_open=True)
+    planner_deadline_s: float = _rng(0.0, lo_open=True)
     restarts: int = _rng(0, 100)
 
 
@@ -335,10 +336,11 @@ def _check_cross(cfg: Config) -> None:
         raise ConfigError("planner.horizon * planner.dt_s must cover the 4 s of Eq. time_cost")
 
 
-def load_config(path: str | Path | None = None, overrides: list[str] | dict[str, Any] | None = None
-                ) -> Config:
-    """Defaults, then the TOML file at `path`, then `section.key=value` overrides."""
-    data = default_dict()
+def load_config(path: str | Path | None = None, overrides: list[str] | dict[str, Any] | None = None,
+                base: Config | None = None) -> Config:
+    """Defaults (or the configuration `base`), then the TOML file at `path`, then
+    `section.key=value` overrides."""
+    data = base.to_dict() if base is not None else default_dict()
     if path is not None:
         try:
             user = tomllib.loads(Path(path).read_text())
@@ -350,6 +352,15 @@ def load_config(path: str | Path | None = None, overrides: list[str] | dict[str,
             parse_override(o) for o in overrides)
         data = _merge(data, _dotted(pairs))
     return config_from_dict(data)
+
+
+def as_overrides(cfg: Config, skip: tuple[str, ...] = ()) -> list[str]:
+    """The `section.key=value` overrides that turn the defaults into `cfg` (sections in
+    `skip` left out): a configuration handed to another process on its command line."""
+    defaults = config_from_dict(default_dict()).to_dict()
+    return [f"{section}.{key}={json.dumps(value)}"
+            for section, values in cfg.to_dict().items() if section not in skip
+            for key, value in values.items() if value != defaults[section][key]]
 
 
 def parameters_markdown() -> str:

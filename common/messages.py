@@ -121,6 +121,7 @@ class State(Message):
     tick: int = integer()                # control tick index
     authority: str = text()              # the planner instance the plant obeys ("" before one)
     epoch: int = integer(since=3, older=0)       # the authority's generation: +1 at each change
+    authority_boot: int = integer(since=3, older=0)  # its process (header.boot); 0: not yet
     outcome: str = text(since=3, older="")       # "" while the episode runs, then its outcome
     goal_region: bool = flag(since=3, older=False)   # the vehicle has been within the goal radius
 
@@ -199,6 +200,20 @@ class Clock(Message):
 
 
 @dataclass(frozen=True)
+class Handover(Message):
+    """A request that planner `to` become the authority (services.plant.protocol): granted
+    if `current` and `epoch` are still the plant's authority record and `to` beats, at the
+    next tick boundary. Sent by the candidate itself, or by `vamppi swap --to`."""
+    SCHEMA: ClassVar[str] = "vamppi.Handover"
+    to: str = text()                     # the planner instance to obey
+    to_boot: int = integer()             # its process (0: the newest that beats)
+    current: str = text()                # the authority it replaces
+    epoch: int = integer()               # ... and that authority's epoch
+    retire: bool = flag()                # the replaced planner stops (else it stands by)
+    reason: str = text()
+
+
+@dataclass(frozen=True)
 class Heartbeat(Message):
     """An instance's beat: its main loop is alive and has made progress (common.supervision).
     The header's stamp is the newest simulation time it has worked on."""
@@ -211,7 +226,8 @@ class Heartbeat(Message):
 
 
 MESSAGE_TYPES: dict[str, type[Message]] = {
-    cls.SCHEMA: cls for cls in (State, Cmd, Depth, Map, Plan, Stats, Event, Clock, Heartbeat)}
+    cls.SCHEMA: cls for cls in (State, Cmd, Depth, Map, Plan, Stats, Event, Clock, Handover,
+                                Heartbeat)}
 
 M = TypeVar("M", bound=Message)
 

@@ -15,7 +15,8 @@ from dataclasses import dataclass, field
 
 from common.messages import Heartbeat
 
-FAILED = ("stalled", "stopping")
+FAILED = ("stalled", "stopping", "retired")   # a retired planner was replaced by a swap
+RETIRED_EXIT = 3      # the exit status of a planner replaced by a swap (vamppi up lets it go)
 
 
 @dataclass(frozen=True)

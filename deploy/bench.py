@@ -460,6 +460,9 @@ def table(result: dict[str, Any]) -> str:
     if kind == "faults":
         from deploy.faults import faults_table
         return faults_table(result)
+    if kind == "swaps":
+        from deploy.swap import swaps_table
+        return swaps_table(result)
     head = f"{kind}: {result['device']} ({result['backend']}, jax {result['jax']})"
     if kind == "record":
         st = result["settings"]
@@ -546,6 +549,13 @@ def main(cfg: Config, what: str, samples: list[int], controllers: list[str], rep
         from deploy.faults import bench_faults
         with tempfile.TemporaryDirectory(prefix="vamppi-faults-") as tmp:
             result = bench_faults(cfg, Path(tmp))
+    elif what == "swaps":
+        import tempfile
+        from pathlib import Path
+
+        from deploy.swap import bench_swaps
+        with tempfile.TemporaryDirectory(prefix="vamppi-swaps-") as tmp:
+            result = bench_swaps(cfg, Path(tmp))
     else:
         raise ValueError(f"unknown benchmark {what!r}")
     print(json.dumps(result) if as_json else table(result), flush=True)

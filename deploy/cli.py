@@ -30,6 +30,7 @@ from common import compile_cache
 from common.config import Config, ConfigError, load_config
 from common.memory import keep_large_buffers
 from common.process import PARENT_ENV, die_with_parent, stop_on_signals, when_orphaned
+from common.supervision import RETIRED_EXIT
 
 
 def add_config_args(p: argparse.ArgumentParser) -> None:
@@ -101,14 +102,41 @@ def cmd_service(args: argparse.Namespace, cfg: Config) -> int:
     stop = threading.Event()
     stop_on_signals(stop)
     if args.stop_with_parent:
-        def parent_gone() -> None:
+        def parent_gone() -> None:        # as a signal: stopped, and gone after the grace
             logging.getLogger(__name__).warning("parent process gone: stopping")
-            stop.set()
+            os.kill(os.getpid(), signal.SIGTERM)
         die_with_parent()
         when_orphaned(parent_gone)
     os.environ.pop(PARENT_ENV, None)
     module = importlib.import_module(SERVICE_MAINS[args.name])
-    module.main(cfg, args.instance, stop)
+    role = "standby" if args.standby else args.role
+    if args.name == "planner":
+        ended = module.main(cfg, args.instance, stop, role=role,
+                            take_over_after_s=args.take_over_after, retire=not args.keep_old,
+                            take_over_at_s=args.take_over_at)
+        if ended == "retired":
+            return RETIRED_EXIT
+    elif role != "active":
+        print(f"vamppi service: --role is for planners; {args.name} has none", file=sys.stderr)
+        return 2
+    else:
+        module.main(cfg, args.instance, stop)
+    return 0
+
+
+def cmd_swap(args: argparse.Namespace, cfg: Config) -> int:
+    """Start a planner instance beside the running one and hand it the authority."""
+    from deploy.swap import SwapError, promote, swap
+    try:
+        if args.to:
+            report = promote(cfg, args.to, keep_old=args.keep_old, timeout_s=args.timeout)
+        else:
+            report = swap(cfg, args.instance, overrides_from_args(args), args.config,
+                          shadow_s=args.shadow, timeout_s=args.timeout, keep_old=args.keep_old)
+    except SwapError as exc:
+        print(f"vamppi swap: {exc}", file=sys.stderr)
+        return 1
+    print(json.dumps(report), flush=True)
     return 0
 
 
@@ -453,9 +481,38 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--instance", default="0", help="instance id (liveliness, health)")
     p.add_argument("--stop-with-parent", action="store_true",
                    help="stop when the parent process dies (set by vamppi up)")
+    p.add_argument("--role", choices=("active", "standby", "candidate", "replay"),
+                   default="active", help="planner: what it does (docs/hotswap.md)")
+    p.add_argument("--standby", action="store_true",
+                   help="planner: a hot standby (--role standby)")
+    p.add_argument("--take-over-after", type=float, default=0.0, metavar="S",
+                   help="planner, candidate: solve in shadow for S seconds, then ask for "
+                        "the authority")
+    p.add_argument("--take-over-at", type=float, default=0.0, metavar="T",
+                   help="planner, candidate: ask for the authority once the episode reaches "
+                        "T (simulation seconds)")
+    p.add_argument("--keep-old", action="store_true",
+                   help="planner, candidate: the planner it replaces stands by, not retires")
     add_config_args(p)
     add_bus_args(p)
     p.set_defaults(func=cmd_service)
+
+    p = sub.add_parser("swap", help="hot-swap the planner: a new instance takes over")
+    p.add_argument("service", choices=("planner",))
+    p.add_argument("--instance", help="the new instance's id (default: a fresh one)")
+    p.add_argument("--to", metavar="INSTANCE",
+                   help="hand the authority to this running planner instance (a standby) "
+                        "instead of starting one")
+    p.add_argument("--shadow", type=float, default=0.0, metavar="S",
+                   help="solve in shadow for S seconds before taking over (plans on "
+                        "vamppi/<vehicle>/planner/shadow)")
+    p.add_argument("--timeout", type=float, default=120.0,
+                   help="give up (the old planner keeps control) after this many seconds")
+    p.add_argument("--keep-old", action="store_true",
+                   help="the replaced planner stands by instead of retiring")
+    add_config_args(p)
+    add_bus_args(p)
+    p.set_defaults(func=cmd_swap)
 
     p = sub.add_parser("run", help="one lockstep episode in-process, without the bus")
     add_config_args(p)
@@ -487,7 +544,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("bench", help="speed benchmarks (a table, or JSON with --json)")
     p.add_argument("what", choices=("planner", "mapper", "bus", "pipeline", "peer", "record",
-                                    "faults"))
+                                    "faults", "swaps"))
     p.add_argument("--samples", dest="samples_list",
                    help="sample counts K (planner, peer: 400,800,1000,4000; pipeline: 800)")
     p.add_argument("--controllers", help="planner: va,deterministic; pipeline: va")

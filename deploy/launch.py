@@ -22,6 +22,7 @@ import contextlib
 import json
 import logging
 import os
+import queue
 import signal
 import socket
 import subprocess
@@ -39,14 +40,16 @@ from common.bus import (
     Inbox,
     ZenohTransport,
     alive_instances,
+    alive_key,
     heartbeat_key,
+    launcher_key,
     open_session,
     topic_key,
 )
 from common.config import BusConfig, Config
 from common.messages import DecodeError, Event, Heartbeat, decode
 from common.process import PARENT_ENV
-from common.supervision import FAILED
+from common.supervision import FAILED, RETIRED_EXIT
 from services.plant.protocol import OUTCOMES
 
 log = logging.getLogger(__name__)
@@ -64,11 +67,11 @@ def router_config(port: int) -> BusConfig:
 
 
 def service_command(name: str, endpoint: str, overrides: list[str], config_path: str | None,
-                    instance: str = "0") -> list[str]:
+                    instance: str = "0", with_parent: bool = True) -> list[str]:
     """`vamppi service NAME`, a client of the router at `endpoint`, stopping with its
-    parent."""
+    parent (unless not `with_parent`)."""
     cmd = [sys.executable, "-m", "deploy.cli", "service", name, "--instance", instance,
-           "--stop-with-parent"]
+           *(["--stop-with-parent"] if with_parent else [])]
     if config_path:
         cmd += ["--config", config_path]
     for o in overrides:
@@ -78,9 +81,11 @@ def service_command(name: str, endpoint: str, overrides: list[str], config_path:
 
 
 def spawn_service(name: str, endpoint: str, overrides: list[str], config_path: str | None,
-                  instance: str = "0", env: dict[str, str] | None = None) -> subprocess.Popen:
-    """`vamppi service NAME` as a subprocess (`service_command`)."""
-    return subprocess.Popen(service_command(name, endpoint, overrides, config_path, instance),
+                  instance: str = "0", env: dict[str, str] | None = None,
+                  args: list[str] = ()) -> subprocess.Popen:
+    """`vamppi service NAME` as a subprocess (`service_command`), `args` added."""
+    return subprocess.Popen([*service_command(name, endpoint, overrides, config_path, instance),
+                             *args],
                             stdout=sys.stderr, stderr=sys.stderr, stdin=subprocess.DEVNULL,
                             env={**os.environ, PARENT_ENV: str(os.getpid()), **(env or {})})
 
@@ -114,12 +119,16 @@ def judge(child: ChildView, now: float, ready_timeout_s: float) -> str:
     """Why the child has failed, or '' while it is well: it exited, it is not ready in
     time, or its beats stopped or say it failed for longer than their deadline."""
     if child.exit_code is not None:
+        if child.exit_code == RETIRED_EXIT:
+            return ""
         return f"exited with code {child.exit_code}"
     if child.beat_at is None or child.beat_status == "starting":
         if now - child.started > ready_timeout_s:
             return f"not ready after {ready_timeout_s:.0f} s"
         return ""
     late = now - child.beat_at
+    if child.beat_status == "retired":
+        return ""
     if child.beat_status in FAILED:
         return f"heartbeat says {child.beat_status}"
     if late > child.beat_deadline_s:
@@ -128,68 +137,109 @@ def judge(child: ChildView, now: float, ready_timeout_s: float) -> str:
 
 
 class Supervisor:
-    """The children of `vamppi up`, watched and restarted (module docstring)."""
+    """The children of `vamppi up`, watched and restarted (module docstring). A child is
+    named by its service ("planner") for instance 0, "service/instance" for others (a
+    swapped-in planner); one that retires (a replaced planner) is let go."""
 
     def __init__(self, endpoint: str, overrides: list[str], config_path: str | None,
                  services: tuple[str, ...], restarts: int, ready_timeout_s: float,
-                 env: dict[str, str] | None = None):
+                 env: dict[str, str] | None = None, min_deadline_s: float = 1.0):
         self.endpoint, self.overrides, self.config_path = endpoint, overrides, config_path
         self.max_restarts, self.ready_timeout_s, self.env = restarts, ready_timeout_s, env
+        self.min_deadline_s = min_deadline_s
         self.procs: dict[str, subprocess.Popen] = {}
         self.restarts: dict[str, int] = {}
         self.failures: list[dict[str, Any]] = []
+        self.retired: list[str] = []
+        self._how: dict[str, tuple[str, str, list[str], list[str], str | None]] = {}
         self._started: dict[str, tuple[float, int]] = {}      # monotonic, time_ns
         self._beats: dict[str, tuple[str, float, float]] = {}  # status, deadline, at
         self._lock = threading.Lock()
         for name in services:
-            self._spawn(name)
+            self.start(name)
 
-    def _spawn(self, name: str) -> None:
+    @staticmethod
+    def label(service: str, instance: str) -> str:
+        return service if instance == "0" else f"{service}/{instance}"
+
+    def start(self, service: str, instance: str = "0", args: list[str] = (),
+              overrides: list[str] | None = None, config_path: str | None = None) -> str:
+        """Start (or start again) a child; its label."""
+        label = self.label(service, instance)
+        if label not in self._how:
+            self._how[label] = (service, instance, list(args),
+                                [*self.overrides, *(overrides or [])],
+                                config_path or self.config_path)
+        service, instance, args, overrides, config = self._how[label]
         with self._lock:
-            self._started[name] = (time.monotonic(), time.time_ns())
-            self._beats.pop(name, None)
-        self.procs[name] = spawn_service(name, self.endpoint, self.overrides, self.config_path,
-                                         env=self.env)
+            self._started[label] = (time.monotonic(), time.time_ns())
+            self._beats.pop(label, None)
+        self.procs[label] = spawn_service(service, self.endpoint, overrides, config, instance,
+                                          self.env, args)
+        return label
+
+    def stop_child(self, label: str) -> None:
+        proc = self.procs.pop(label, None)
+        if proc is not None:
+            stop_all({label: proc})
 
     def on_beat(self, hb: Heartbeat) -> None:
         """A heartbeat from the bus: kept if it is the newest process of a child's."""
-        name = hb.header.source.split("/")[0]
+        service, _, instance = hb.header.source.partition("/")
+        label = self.label(service, instance)
         with self._lock:
-            started = self._started.get(name)
+            started = self._started.get(label)
             if started is not None and hb.header.boot >= started[1]:
-                self._beats[name] = (hb.status, hb.deadline_s, time.monotonic())
+                self._beats[label] = (hb.status, max(hb.deadline_s, self.min_deadline_s),
+                                      time.monotonic())
 
-    def view(self, name: str) -> ChildView:
+    def view(self, label: str) -> ChildView:
         with self._lock:
-            status, deadline, at = self._beats.get(name, ("", 0.0, None))
-            started = self._started[name][0]
-        return ChildView(started, self.procs[name].poll(), status, deadline, at)
+            status, deadline, at = self._beats.get(label, ("", 0.0, None))
+            started = self._started[label][0]
+        return ChildView(started, self.procs[label].poll(), status, deadline, at)
 
     def check(self, expected_exit: Callable[[str], bool] = lambda name: False
               ) -> dict[str, Any] | None:
-        """Restart every failed child (an exit `expected_exit` allows is none); the failure
-        that exhausted its service's restarts, if one did."""
+        """Restart every failed child (an exit `expected_exit` allows is none; a retired one
+        is let go); the failure that exhausted its service's restarts, if one did."""
         now = time.monotonic()
-        for name in list(self.procs):
-            child = self.view(name)
+        for label in list(self.procs):
+            child = self.view(label)
+            if child.exit_code == RETIRED_EXIT:
+                self.procs.pop(label)
+                self.retired.append(label)
+                log.info("vamppi up: %s", json.dumps({"retired": label}))
+                continue
             why = judge(child, now, self.ready_timeout_s)
-            if not why or (child.exit_code == 0 and expected_exit(name)):
+            if not why or (child.exit_code == 0 and expected_exit(label)):
                 continue
             beat_age = None if child.beat_at is None else round(now - child.beat_at, 3)
-            failure = {"service": name, "why": why, "last_beat_s_ago": beat_age,
-                       "restarts": self.restarts.get(name, 0)}
+            failure = {"service": label, "why": why, "last_beat_s_ago": beat_age,
+                       "restarts": self.restarts.get(label, 0)}
             self.failures.append(failure)
-            proc = self.procs[name]
+            proc = self.procs[label]
             if proc.poll() is None:
                 proc.kill()
                 proc.wait()
-            if self.restarts.get(name, 0) >= self.max_restarts:
+            if self.restarts.get(label, 0) >= self.max_restarts:
                 log.error("vamppi up: %s", json.dumps({"gave_up": failure}))
                 return failure
-            self.restarts[name] = self.restarts.get(name, 0) + 1
+            self.restarts[label] = self.restarts.get(label, 0) + 1
             log.warning("vamppi up: %s", json.dumps({"restarting": failure}))
-            self._spawn(name)
+            self.start(label.split("/")[0], label.partition("/")[2] or "0")
         return None
+
+    def request(self, req: dict[str, Any]) -> None:
+        """A launcher request from the bus (`vamppi swap`): spawn or stop an instance."""
+        if "spawn" in req:
+            r = req["spawn"]
+            label = self.start(str(r["name"]), str(r["instance"]), list(r.get("args", [])),
+                               list(r.get("overrides", [])), r.get("config"))
+            log.info("vamppi up: %s", json.dumps({"started": label, "for": "a swap"}))
+        elif "stop" in req:
+            service, _, instance = str(req["stop"]).partition("/")
+            self.stop_child(self.label(service, instance or "0"))
 
     def stop(self) -> None:
         stop_all(self.procs)
@@ -200,10 +250,12 @@ def services_up(cfg: Config, overrides: list[str], config_path: str | None = Non
                 services: tuple[str, ...] = SERVICES, ready_timeout_s: float = 300.0,
                 subscriptions: dict[str, Callable[[Any], None]] | None = None,
                 on_session: Callable[[Any], Callable[[], None]] | None = None,
-                restarts: int = 0, env: dict[str, str] | None = None
+                restarts: int = 0, env: dict[str, str] | None = None,
+                args: dict[str, list[str]] | None = None
                 ) -> Iterator[tuple[Any, str, Supervisor]]:
     """Router + the named services, ready (every token up). Yields (session, endpoint,
-    supervisor); `restarts` per service are allowed before a failure is final.
+    supervisor); `restarts` per service are allowed before a failure is final; `args`:
+    extra command-line arguments per service.
 
     `subscriptions` (key -> callback) are declared on the router's session before
     any service starts, so nothing the services publish is missed; so is
@@ -216,8 +268,10 @@ def services_up(cfg: Config, overrides: list[str], config_path: str | None = Non
         for key, callback in (subscriptions or {}).items():
             session.declare_subscriber(key, callback)
         finish = on_session(session) if on_session is not None else None
-        sup = Supervisor(endpoint, overrides, config_path, services, restarts, ready_timeout_s,
-                         env)
+        sup = Supervisor(endpoint, overrides, config_path, (), restarts, ready_timeout_s,
+                         env, cfg.supervision.heartbeat_deadline_s)
+        for name in services:
+            sup.start(name, args=(args or {}).get(name, []))
 
         def on_beat(_key: str, payload: bytes) -> None:
             try:
@@ -281,8 +335,19 @@ def up(cfg: Config, overrides: list[str], config_path: str | None = None,
         with services_up(cfg, overrides, config_path, subscriptions={
                 events.key: lambda s: events.on_payload(s.payload.to_bytes())},
                 on_session=recording_hook(cfg, record, summary) if record else None,
-                restarts=cfg.supervision.restarts) as (_, _, sup):
-            log.info("all services up after %.1f s", time.monotonic() - wall0)
+                restarts=cfg.supervision.restarts) as (session, endpoint, sup):
+            log.info("all services up after %.1f s, router on %s (vamppi swap --connect %s)",
+                     time.monotonic() - wall0, endpoint, endpoint)
+            bus = ZenohTransport(session)
+            requests: queue.SimpleQueue[dict[str, Any]] = queue.SimpleQueue()
+
+            def on_request(_key: str, payload: bytes) -> None:
+                try:
+                    requests.put(json.loads(payload))
+                except ValueError as exc:
+                    log.warning("an unreadable launcher request: %s", exc)
+            keep = [bus.subscriber(launcher_key(cfg.episode.vehicle), on_request),
+                    bus.token(alive_key(cfg.episode.vehicle, "launcher", "0"))]
             start_wall = None
             deadline = time.monotonic() + timeout_s
             ended_at = None
@@ -302,6 +367,8 @@ def up(cfg: Config, overrides: list[str], config_path: str | None = None,
                         summary["failure"] = {"service": "plant", "why": "the episode ended "
                                               "but its outcome event never arrived"}
                         break
+                while not requests.empty():
+                    sup.request(requests.get())
                 failure = sup.check(expected_exit=lambda name: name == "plant")
                 summary["restarts"] = dict(sup.restarts)
                 if failure is not None:
@@ -311,6 +378,8 @@ def up(cfg: Config, overrides: list[str], config_path: str | None = None,
                 log.error("no outcome after %.0f s wall", timeout_s)
                 summary["failure"] = {"service": None, "why": f"no outcome after "
                                                               f"{timeout_s:.0f} s wall"}
+            for k in keep:
+                k.undeclare()
     except (RuntimeError, TimeoutError) as exc:
         log.error("%s", exc)
         summary["failure"] = {"service": None, "why": str(exc)}

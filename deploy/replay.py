@@ -29,25 +29,16 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from common.bus import PREFIX, TOPICS
+from common.bus import INPUTS, PREFIX, TOPICS, topic_of
 from common.config import Config, config_toml, load_config
 from common.messages import DecodeError, Message, decode
 from deploy.recording import Recorded, iter_messages, recorded_config, recording_keys
 
 log = logging.getLogger(__name__)
 
-# what each service reads (the one table of inputs; TOPICS names the outputs)
-CONSUMES: dict[str, tuple[str, ...]] = {"sensor": ("state",), "mapper": ("depth",),
-                                        "planner": ("state", "map")}
-FEEDABLE = tuple(CONSUMES)
+FEEDABLE = ("sensor", "mapper", "planner")
 # outputs compared bit for bit; planner stats carry a wall-clock solve time
 COMPARED = ("depth", "map", "cmd", "plan")
-
-
-def topic_of(key: str) -> str:
-    """`vamppi/<vehicle>/<service>/<topic>` -> topic ('' for other keys)."""
-    parts = key.split("/")
-    return parts[3] if len(parts) == 4 and parts[0] == PREFIX and parts[3] in TOPICS else ""
 
 
 def key_matcher(topics: Iterable[str] | None):
@@ -188,7 +179,7 @@ def feed(path: str | Path, services: list[str], overrides: list[str], keep_going
     cfg, run = feed_config(path, overrides, services[-1])
     config_file, run = run[0], run[1:]
     produced = {t for t, (owner, _) in TOPICS.items() if owner in services}
-    inputs = {t for s in services for t in CONSUMES[s]} - produced
+    inputs = {t for s in services for t in INPUTS[s]} - produced
     outputs = produced & set(COMPARED)
     vehicle = cfg.episode.vehicle
     live = LiveOutputs()
@@ -200,10 +191,16 @@ def feed(path: str | Path, services: list[str], overrides: list[str], keep_going
                               "diverged": 0, "missing": [], "first_divergence": None}
     try:
         with services_up(cfg, run, config_file, services=tuple(services),
-                         subscriptions=subs) as (session, _, _):
+                         subscriptions=subs, args={"planner": ["--role", "replay"]}
+                         ) as (session, _, _):
             pubs = {}
+            authority: tuple[str, int] = ("", 0)
             for m in iter_messages(path):
                 topic = topic_of(m.key)
+                if topic == "state":
+                    authority = _authority(m.data, authority)
+                if topic in ("cmd", "plan") and not _from(m.data, authority):
+                    continue                   # another planner's (a rogue, one replaced)
                 if topic in inputs:
                     if m.key not in pubs:
                         pubs[m.key] = session.declare_publisher(
@@ -218,9 +215,30 @@ def feed(path: str | Path, services: list[str], overrides: list[str], keep_going
                         progress(report)
     finally:
         Path(config_file).unlink(missing_ok=True)
+    report.pop("_seen", None)
     report["bit_identical"] = (report["first_divergence"] is None and not report["missing"]
                                and sum(report["compared"].values()) > 0)
     return report
+
+
+def _authority(payload: bytes, current: tuple[str, int]) -> tuple[str, int]:
+    """The planner a recorded state names as the plant's authority (source, process)."""
+    try:
+        s = decode(payload)
+    except DecodeError:
+        return current
+    return (s.authority, s.authority_boot) if s.authority else current
+
+
+def _from(payload: bytes, authority: tuple[str, int]) -> bool:
+    """Whether a recorded planner output is the authority's (any, before a state names
+    one): only those are compared, so that the check holds across a swap."""
+    try:
+        h = decode(payload).header
+    except DecodeError:
+        return True
+    src, boot = authority
+    return not src or (h.source == src and boot in (0, h.boot))
 
 
 def _check(m: Recorded, topic: str, live: LiveOutputs, report: dict[str, Any],
@@ -231,6 +249,10 @@ def _check(m: Recorded, topic: str, live: LiveOutputs, report: dict[str, Any],
     except DecodeError as exc:
         log.warning("feed: recorded %s undecodable (%s); skipped", m.key, exc)
         return False
+    seen = report.setdefault("_seen", set())
+    if (topic, round(rec.header.stamp, 6)) in seen:     # a replaced planner's command at a
+        return False                                    # swap's tick, or a re-offer's answer
+    seen.add((topic, round(rec.header.stamp, 6)))
     got = live.wait(topic, rec.header.stamp, timeout_s)
     report["compared"][topic] += 1
     if got is None:

@@ -152,7 +152,8 @@ def run_episode(cfg: Config, cores: Cores | None = None,
     wall0 = time.monotonic()
     wire = _Wire()
     pr, outs = plant.start(cores.plant, EPISODE, 0.0)
-    sr, mr, qr = sensor.SensorRun(), mapper.MapperRun(), planner.PlannerRun(cfg.episode.seed)
+    sr, mr = sensor.SensorRun(), mapper.MapperRun()
+    qr = planner.PlannerRun(cfg.episode.seed, boot=1)        # the wire's planner process
     rows = [np.concatenate([[pr.sim.t], pr.sim.x])]
     solve_ms: list[float] = []
     snapshots: list[dict[str, Any]] = []

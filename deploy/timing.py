@@ -18,7 +18,7 @@ import msgpack
 import numpy as np
 
 from common.bus import topic_key
-from common.messages import DecodeError, peek
+from common.messages import DecodeError, decode, peek
 from common.protocol import SeqTrack
 from deploy.recording import iter_messages, read_metadata
 
@@ -170,6 +170,7 @@ def analyse(path: str | Path) -> dict[str, Any]:
                            "chain": chain.summary()}
     if solve_ms:
         out["solve_ms"] = {**_ms([s / 1e3 for s in solve_ms]), "count": len(solve_ms)}
+    out["authority"] = authority_changes(path)
     out["_series"] = {"solve_ms": solve_ms, "chains": chain.chains(),
                       "latency": {key: k["latency"] for key, k in per.items()},
                       "period": {key: list(np.diff(np.asarray(k["log"]) / 1e9))
@@ -207,7 +208,51 @@ def table(result: dict[str, Any]) -> str:
         s = result["solve_ms"]
         lines.append(f"planner solve   p50 {s['p50_ms']:9.3f} ms   p95 {s['p95_ms']:9.3f} ms"
                      f"   max {s['max_ms']:9.3f} ms   n {s['count']}")
+    if result.get("authority"):
+        lines += ["", "| authority at s | how | to | first command of it after s "
+                      "| stale steps in between |", "|---|---|---|---|---|"]
+        for a in result["authority"]:
+            lines.append(f"| {a['stamp_s']} | {a['kind']} | {a['to']} "
+                         f"| {f(a['first_command_after_s'])} | {a['stale_steps']} |")
     return "\n".join(lines)
+
+
+def authority_changes(path: str | Path) -> list[dict[str, Any]]:
+    """Every change of the plant's authority (its `authority` events): when, to whom, how
+    (start, swap, fail-over, restart), and how long the plant went without a command of the
+    new authority: from the change to the first state applying a command of t0 at or
+    after it, the plant periods in between that applied no command at all."""
+    from common.messages import Event, State
+    events, states = [], []
+    for m in iter_messages(path):
+        if m.key.endswith("/plant/events") or m.key.endswith("/plant/state"):
+            try:
+                msg = decode(m.data)
+            except DecodeError:
+                continue
+            if isinstance(msg, Event) and msg.kind == "authority":
+                events.append((m.log_time_ns, msg))
+            elif isinstance(msg, State):
+                states.append(msg)
+    stamps: dict[float, State] = {}
+    for st in states:
+        stamps.setdefault(round(st.header.stamp, 6), st)
+    ordered = [stamps[k] for k in sorted(stamps)]
+    out = []
+    for log_ns, e in sorted(events, key=lambda x: x[1].header.stamp):
+        t = e.header.stamp
+        how = ("fail-over" if "fail-over" in e.detail else "swap" if "handover" in e.detail
+               else "start" if t < 1e-9 or "epoch 1" in e.detail else "restart")
+        after = [s for s in ordered if s.header.stamp > t + 1e-9]
+        first = next((s for s in after if any(i.key.endswith("/cmd") and i.stamp >= t - 1e-6
+                                              for i in s.header.inputs)), None)
+        between = [s for s in after if first is None or s.header.stamp < first.header.stamp]
+        out.append({"stamp_s": round(t, 6), "kind": how, "to": e.detail.split(" ")[0],
+                    "detail": e.detail, "wall_time": round(log_ns / 1e9, 3),
+                    "first_command_after_s": None if first is None
+                    else round(first.header.stamp - t, 3),
+                    "stale_steps": sum(not s.header.inputs for s in between)})
+    return out
 
 
 def plots(result: dict[str, Any], out_dir: str | Path) -> list[Path]:

@@ -16,6 +16,7 @@ from deploy.faults import (
     Pipeline,
     Rogue,
     Up,
+    cmdline,
     json_lines,
     processes_with,
     rejections,
@@ -142,7 +143,8 @@ def test_hostile_messages_do_not_stop_a_realtime_episode(tmp_path):
         assert (topic, why) in rej, sorted(rej)
 
 
-@pytest.mark.parametrize("name", ["mapper", "sensor", "planner", "plant", "router"])
+# the sensor's loss is the mapper's (perception stale): `vamppi bench faults` measures both
+@pytest.mark.parametrize("name", ["mapper", "planner", "plant", "router"])
 def test_realtime_loss_of_a_service_stops_the_vehicle_and_it_drives_on(name, tmp_path):
     """Killed at speed: the plant brakes to a standstill (perception or commands stale);
     restarted, the service rejoins, the vehicle drives on and reaches the goal."""
@@ -265,7 +267,8 @@ def test_kill_9_of_vamppi_up_leaves_no_process_behind(clock):
     while processes_with(marker) and time.monotonic() - t < 5.0:
         time.sleep(0.05)
     gone = time.monotonic() - t
-    assert processes_with(marker) == [] and gone < 2.0
+    left = [cmdline(pid)[:200] for pid in processes_with(marker)]
+    assert left == [] and gone < 2.0, (left, gone)
 
 
 @pytest.mark.parametrize("cut_s", [2.0, 12.0])
@@ -275,13 +278,14 @@ def test_lockstep_waits_out_a_cut_link_and_goes_on_bit_for_bit(cut_s, reference,
     assert b.trajectory().tobytes() == reference.tobytes()
 
 
-@pytest.mark.parametrize("cut_s", [2.0, 12.0])
+# realtime, the 12 s cut only (the 2 s one, within the lease, is `vamppi bench faults`'s)
+@pytest.mark.parametrize("cut_s", [12.0])
 def test_a_cut_link_brakes_the_vehicle_which_drives_on_after_and_nothing_is_lost(
         cut_s, tmp_path):
-    """Realtime, the plant's link cut for 2 s and for 12 s (longer than zenoh's 10 s lease)
-    at speed: it brakes on stale commands, drives on after the link returns and reaches
-    the goal; what it published in the cut reaches the recorder late, and whatever does not
-    (uncached heartbeats) is reported seq by seq."""
+    """Realtime, the plant's link cut for 12 s (longer than zenoh's 10 s lease) at speed:
+    it brakes on stale commands, drives on after the link returns and reaches the goal;
+    what it published in the cut reaches the recorder late, and whatever does not (uncached
+    heartbeats) is reported seq by seq."""
     b, stats, ev, t_cut = run_with_cut(RT, cut_s, tmp_path, 3.0)
     assert ev.kind == "success"
     states = sorted((s.header.stamp, s) for s in (decode(m.data) for m in iter_messages(b.path)

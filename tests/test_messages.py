@@ -12,6 +12,7 @@ from common.messages import (
     DecodeError,
     Depth,
     Event,
+    Handover,
     Header,
     Heartbeat,
     InputRef,
@@ -52,6 +53,8 @@ def sample(cls, rng):
         Event: lambda: Event(h, kind="success", outcome="success", time_to_goal_s=float("nan"),
                              detail=""),
         Clock: lambda: Clock(h, tick=12, mode="lockstep"),
+        Handover: lambda: Handover(h, to="planner/1", to_boot=5, current="planner/0", epoch=3,
+                                   retire=True, reason="swap"),
         Heartbeat: lambda: Heartbeat(h, status="ready", role="active", deadline_s=1.0,
                                      detail=""),
     }[cls]()
@@ -163,7 +166,8 @@ def test_version_1_payloads_without_pad_still_decode(rng):
 
 def test_version_2_payloads_decode_with_the_newer_fields_defaults(rng):
     s, c = sample(State, rng), sample(Cmd, rng)
-    for msg, newer in ((s, ("epoch", "outcome", "goal_region")), (c, ("rng",))):
+    for msg, newer in ((s, ("epoch", "authority_boot", "outcome", "goal_region")),
+                       (c, ("rng",))):
         raw = raw_of(msg)
         v2 = {k: v for k, v in raw.items() if k not in newer}
         back = decode(pack({**v2, "version": 2, "header": _older_header(raw)}))

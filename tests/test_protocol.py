@@ -3,6 +3,7 @@ repeats, restore and resume (services/*/protocol.py, common/protocol.py)."""
 
 from dataclasses import replace
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -375,3 +376,13 @@ def test_the_vehicle_drives_on_after_a_command_outage(outage_s):
     r = run_episode(cfg, planner_link=lambda t: not (3.0 - 1e-9 <= t < 3.0 + outage_s - 1e-9))
     assert r.outcome == "success", (r.outcome, r.sim_time_s)
     assert r.stale_steps >= round((outage_s - cfg.plant.cmd_timeout_s) * cfg.plant.rate_hz)
+
+
+def test_advance_shifts_the_nominal_as_slicing_does_for_every_shift(rng):
+    from services.planner import mppi
+    nom = rng.normal(size=(40, 2)).astype(np.float32)
+    for k in (1, 2, 3, 7, 39, 40, 55):
+        kk = min(k, 40)
+        want = np.concatenate([nom[kk:], np.repeat(nom[-1:], kk, axis=0)])
+        got = np.asarray(mppi.advance(mppi.PlannerState(jnp.asarray(nom), None), k).nominal)
+        assert got.tobytes() == want.tobytes(), k

@@ -30,7 +30,7 @@ def main(cfg: Config, instance: str = "0", stop: threading.Event | None = None,
     with Node(bus or cfg.bus, cfg.episode.vehicle, "mapper", instance, cfg.to_dict(),
               sv.heartbeat_period_s, sv.heartbeat_deadline_s) as node:
         frames = node.subscribe("depth", Depth, maxlen=64 if p.lockstep else 1)
-        map_pub = node.publisher("map", Map)
+        map_pub = node.publisher("map", Map, drop=not p.lockstep)
         node.hold("map", lambda: map_pub.latest)
         # compile the fusion before raising the token
         warm = core.initial_map(p.core, 0.0, 0.0, 0.0)

@@ -26,6 +26,17 @@ where every sample's braking force does nothing and MPPI has no gradient to leav
 **Recovery.** The plant's last obeyed command carries the nominal it applies and the
 sampler state after that solve (`Cmd.rng`): a restarted planner goes on from them
 (`recover`), exactly where the one before left off.
+
+**Authority and roles.** Every state names the planner the plant obeys (source, process,
+epoch). A planner commands only while a state names it (`commands`); the others follow
+the authority's commands (`on_cmd`: its nominal and sampler key become theirs), so that
+whoever takes over next continues the same plan: a `standby` only follows (the plant
+promotes it when the authority's heartbeat stops), a `candidate` (a swap) also solves
+each tick and publishes its plans on the `shadow` topic until it is handed authority. A
+planner that becomes the authority at a tick solves it only once it has followed the
+command the plant obeyed for the tick before (the state names it among its inputs), so
+that its first command continues the old plan; a `replay` planner (`vamppi replay
+--feed`) commands every tick, as no plant judges it.
 """
 
 from __future__ import annotations
@@ -109,6 +120,12 @@ class PlannerCtx:
     last_wall: float = 0.0
     answer: tuple[Out, ...] = ()
     cold_starts: int = 0
+    authority: tuple[str, int, int] = ("", 0, -1)  # source, boot, epoch of the newest state
+    needed_t0: float | None = None     # authority since a tick: the obeyed command before it
+    needed_wall: float = 0.0
+    cmds: Order = field(default_factory=Order)    # the authority's commands followed
+    shadow_t: float | None = None      # a candidate: the last tick it solved in shadow
+    followed: tuple[tuple[float, mppi.PlannerState], ...] = ()  # the last few, by t0
 
 
 @dataclass(frozen=True)
@@ -117,6 +134,16 @@ class PlannerRun:
     episodes: Episodes[PlannerCtx] = field(default_factory=Episodes)
     held_state: State | None = None
     held_map: Map | None = None
+    source: str = "planner/0"                    # this instance and process
+    boot: int = 0
+    role: str = "active"                         # active | standby | candidate | replay
+
+    def names_me(self, authority: tuple[str, int, int]) -> bool:
+        source, boot, _ = authority
+        return source == self.source and boot in (0, self.boot)
+
+
+FOLLOW_WAIT_S = 1.0      # how long a new authority waits for the command it must follow
 
 
 @dataclass(frozen=True)
@@ -144,11 +171,24 @@ def on_state(p: PlannerProtocolParams, run: PlannerRun, msg: State, wall: float
         return after_rejection(run, h.episode, replace(ctx, states=states),
                                states is not ctx.states), verdict, ()
     ctx = replace(ctx, states=states)
+    if msg.epoch >= ctx.authority[2]:
+        named = (msg.authority, msg.authority_boot, msg.epoch)
+        if run.names_me(named) and not run.names_me(ctx.authority) and ctx.authority[0]:
+            obeyed = [i.stamp for i in h.inputs if i.key.endswith("/cmd")]
+            needed = max(obeyed) if obeyed else None
+            ctx = replace(ctx, needed_t0=needed, needed_wall=wall)
+            # followed beyond what the plant obeyed (the old planner's command for the tick
+            # the handover took): go back to the one obeyed
+            back = [qs for t0, qs in ctx.followed if needed is not None
+                    and abs(t0 - needed) <= EPS]
+            if back and ctx.last_t is not None and ctx.last_t > needed + EPS:
+                ctx = replace(ctx, qs=back[0], last_t=needed, answer=())
+        ctx = replace(ctx, authority=named)
     outs: tuple[Out, ...] = ()
     boundary = on_tick(h.stamp, p.dt)
     if p.lockstep:
         if verdict == REPEAT and ctx.last_t is not None and abs(h.stamp - ctx.last_t) <= EPS:
-            outs = ctx.answer
+            outs = ctx.answer if commands(run, ctx) else ()
         elif verdict == NEW and boundary and (ctx.last_t is None or h.stamp > ctx.last_t + EPS):
             ctx = replace(ctx, waiting_states=(*ctx.waiting_states, msg)[-PENDING:])
     else:
@@ -192,19 +232,34 @@ def realtime_due(last_t: float | None, t: float, fresh_map: bool, dt: float,
     return since_last_s >= 1.5 * dt and t >= last_t + dt - EPS
 
 
+def commands(run: PlannerRun, ctx: PlannerCtx) -> bool:
+    """Whether this planner commands in this episode: the plant names it (or it replays)."""
+    return run.role == "replay" or run.names_me(ctx.authority)
+
+
 def due(p: PlannerProtocolParams, run: PlannerRun, wall: float) -> Job | None:
-    """The solve to make now, if any: in the newest episode that has one."""
+    """The solve to make now, if any: in the newest episode that has one. A standby that is
+    not the authority never solves; a new authority not before it has followed the command
+    obeyed before its first tick (or waited FOLLOW_WAIT_S for it)."""
     for episode, ctx in reversed(run.episodes.items):
+        mine = commands(run, ctx)
+        if not mine and run.role != "candidate":
+            continue
+        if (mine and ctx.needed_t0 is not None and wall - ctx.needed_wall < FOLLOW_WAIT_S
+                and (ctx.last_t is None or ctx.last_t < ctx.needed_t0 - EPS)):
+            continue
+        last = ctx.last_t
+        if not mine and ctx.shadow_t is not None:     # a shadow solve keeps no state
+            last = ctx.shadow_t if last is None else max(last, ctx.shadow_t)
         if p.lockstep:
             maps = {round(m.header.stamp / EPS): m for m in ctx.waiting_maps}
             for st in sorted(ctx.waiting_states, key=lambda s: s.header.stamp):
                 m = maps.get(round(st.header.stamp / EPS))
-                if m is not None:
+                if m is not None and (last is None or st.header.stamp > last + EPS):
                     return Job(episode, st, m)
         elif ctx.waiting_states and ctx.map is not None:
             st = ctx.waiting_states[-1]
-            if realtime_due(ctx.last_t, st.header.stamp, ctx.fresh_map, p.dt,
-                            wall - ctx.last_wall):
+            if realtime_due(last, st.header.stamp, ctx.fresh_map, p.dt, wall - ctx.last_wall):
                 return Job(episode, st, ctx.map)
     return None
 
@@ -221,7 +276,7 @@ def warm_start(p: PlannerProtocolParams, qs: mppi.PlannerState, last_t: float, t
     follows = 0 <= i < len(nominal) and ticks < len(nominal) and bool(
         np.all(np.abs(np.asarray(u_applied, np.float64) - nominal[i]) <= p.follow_tol))
     if not follows:
-        return qs._replace(nominal=jnp.zeros_like(qs.nominal)), True
+        return qs._replace(nominal=jnp.asarray(np.zeros(nominal.shape, np.float32))), True
     return mppi.advance(qs, ticks), False
 
 
@@ -249,6 +304,7 @@ def solve(p: PlannerProtocolParams, run: PlannerRun, job: Job, wall: float
     solve_ms = (time.perf_counter() - t_solve) * 1e3
     inputs = (ref(p.state_key, st), ref(p.map_key, m))
     ep = job.episode
+    mine = commands(run, ctx)
     outs = (
         Out("cmd", t, {"t0": t, "dt": p.dt, "controls": controls,
                        "rng": np.asarray(qs.key, dtype="<u4")}, inputs, ep),
@@ -262,12 +318,58 @@ def solve(p: PlannerProtocolParams, run: PlannerRun, job: Job, wall: float
                          "cost_mean": _finite(out.cost_mean),
                          "terms": dict(zip(TERMS, map(float, np.asarray(out.terms)),
                                            strict=True))}, inputs, ep))
+    if not mine:    # a candidate: its plan on the shadow topic; it keeps the authority's state
+        ctx = replace(ctx, shadow_t=t, last_wall=wall, fresh_map=False)
+        return replace(run, episodes=run.episodes.put(ep, ctx)), (replace(outs[1],
+                                                                           topic="shadow"),)
     ctx = replace(ctx, qs=qs, last_t=t, last_wall=wall, answer=outs, fresh_map=False,
+                  needed_t0=None if mine else ctx.needed_t0,
                   cold_starts=ctx.cold_starts + cold,
                   waiting_states=tuple(s for s in ctx.waiting_states
                                        if s.header.stamp > t + EPS) if p.lockstep else (),
                   waiting_maps=tuple(x for x in ctx.waiting_maps if x.header.stamp > t + EPS))
     return replace(run, episodes=run.episodes.put(ep, ctx)), outs
+
+
+def on_cmd(p: PlannerProtocolParams, run: PlannerRun, cmd: Cmd, wall: float
+           ) -> tuple[PlannerRun, str]:
+    """Follow the authority's command (another planner's): its nominal and sampler key
+    become this planner's, so that it continues the same plan if it takes over."""
+    h = cmd.header
+    if h.source == run.source:
+        return run, "mine"
+    ctx = run.episodes.get(h.episode)
+    if ctx is None:
+        return run, "another episode"
+    src, boot, _ = ctx.authority
+    if h.source != src or (boot and h.boot != boot):
+        return run, "not the authority"
+    cmds, verdict = judge(ctx.cmds, h, wall, math.inf, False, "planner")
+    if verdict not in ACCEPTED:
+        return run, verdict
+    if commands(run, ctx) or (ctx.last_t is not None and cmd.t0 < ctx.last_t - EPS):
+        return replace(run, episodes=run.episodes.put(h.episode, replace(ctx, cmds=cmds))), \
+            "not followed"
+    run = recover(p, replace(run, episodes=run.episodes.put(h.episode,
+                                                             replace(ctx, cmds=cmds))), cmd)
+    return run, verdict
+
+
+def handover_request(run: PlannerRun, episode: int | None = None, retire: bool = True,
+                     reason: str = "swap") -> Out | None:
+    """The Handover asking the plant for the authority in force (of the newest episode), once
+    this candidate has solved in shadow on the inputs it accepted (a planner that cannot
+    work here, a grid or camera not the running one's, never asks)."""
+    got = run.episodes.current() if episode is None else (episode, run.episodes.get(episode))
+    if got is None or got[1] is None or not got[1].authority[0] or got[1].shadow_t is None:
+        return None
+    ep, ctx = got
+    src, _, epoch = ctx.authority
+    if run.names_me(ctx.authority):
+        return None
+    return Out("handover", 0.0 if ctx.last_t is None else ctx.last_t,
+               {"to": run.source, "to_boot": run.boot, "current": src, "epoch": epoch,
+                "retire": retire, "reason": reason}, (), ep)
 
 
 def recover(p: PlannerProtocolParams, run: PlannerRun, cmd: Cmd) -> PlannerRun:
@@ -278,5 +380,6 @@ def recover(p: PlannerProtocolParams, run: PlannerRun, cmd: Cmd) -> PlannerRun:
     ctx = context(run.episodes, cmd.header.episode, PlannerCtx)
     qs = mppi.PlannerState(jnp.asarray(cmd.controls, jnp.float32),
                            jnp.asarray(cmd.rng, jnp.uint32))
-    ctx = replace(ctx, qs=qs, last_t=cmd.t0)
+    t0 = cmd.t0          # (what waits for a partner stays: `due` takes only later stamps)
+    ctx = replace(ctx, qs=qs, last_t=t0, answer=(), followed=(*ctx.followed, (t0, qs))[-4:])
     return replace(run, episodes=run.episodes.put(cmd.header.episode, ctx))

@@ -27,7 +27,7 @@ from common.bus import (
     heartbeat_key,
 )
 from common.config import Config
-from common.messages import Clock, Cmd, Event, Heartbeat, State, encode
+from common.messages import Clock, Cmd, Event, Handover, Heartbeat, State, encode
 from common.protocol import NEW, Out
 from common.scenarios import scenario_of
 from common.supervision import Watch, missing, on_beat
@@ -71,6 +71,7 @@ def main(cfg: Config, instance: str = "0", stop: threading.Event | None = None,
         cmds = node.subscribe("cmd", Cmd, maxlen=256 if p.lockstep else 2)
         beats = node.subscribe(HEARTBEAT, Heartbeat, maxlen=64,
                                key=heartbeat_key(cfg.episode.vehicle))
+        handovers = node.subscribe("handover", Handover, maxlen=16)
         held = {"state": None, "cmd": None}
         node.hold("state", lambda: held["state"])
         node.hold("cmd", lambda: held["cmd"])
@@ -104,6 +105,11 @@ def main(cfg: Config, instance: str = "0", stop: threading.Event | None = None,
                 got_all = [got] if got is not None else []
             else:
                 got_all = cmds.drain()
+            for h, wall in handovers.drain():
+                run, verdict, outs = protocol.on_handover(p, run, h, wall, watch)
+                if verdict != NEW:
+                    node.reject("handover", verdict, h)
+                publish(outs)
             for cmd, wall in got_all:
                 run, verdict, outs = protocol.on_cmd(p, run, cmd, wall, watch)
                 if verdict != NEW:
@@ -115,10 +121,11 @@ def main(cfg: Config, instance: str = "0", stop: threading.Event | None = None,
                 if not got_all:
                     gone = missing(watch, ("sensor", "mapper", "planner"), time.time())
                     run, outs = protocol.lockstep_idle(
-                        p, run, time.time(), f"no heartbeat: {', '.join(gone)}" if gone else "")
+                        p, run, time.time(), f"no heartbeat: {', '.join(gone)}" if gone else "",
+                        watch)
                     publish(outs)
             else:
-                run, outs = protocol.realtime_step(p, run)
+                run, outs = protocol.realtime_step(p, run, time.time(), watch)
                 publish(outs)
                 next_wall += period
                 delay = next_wall - time.monotonic()

@@ -10,6 +10,10 @@ process of it at a time (`Authority`: source, boot, epoch). Commands of any othe
 of an older process, or of a newer one while the current one still beats its heartbeat
 (common.supervision) are rejected; a newer process takes over once the old one's beats
 have stopped (a restart), and each change raises the epoch. Every state carries it.
+Only two things change it besides: a `Handover` (`on_handover`) that a planner sends
+naming the current authority and epoch, granted at the next tick boundary if it beats
+(a swap); and a fail-over (`_failover`), when the authority's beats stop and a planner
+beats as `standby`: that one takes over at once.
 
 **Acceptance.** A command must belong to this episode, have `dt > 0` and at least one
 control, cover the whole tick in lockstep, and stay within the actuators' limits (the
@@ -42,9 +46,9 @@ import numpy as np
 
 from common.bus import topic_key
 from common.config import Config
-from common.messages import Cmd, State
+from common.messages import Cmd, Handover, State
 from common.protocol import EPS, NEW, REPEAT, Order, Out, accept, check, on_tick, ref
-from common.supervision import Watch, alive
+from common.supervision import Watch, alive, is_alive, newest
 from services.plant import core
 from services.plant.dynamics import S
 
@@ -96,6 +100,8 @@ class PlantRun:
     offered_wall: float = 0.0          # lockstep: the pending tick's last offer
     waiting_since: float = 0.0         # lockstep: its first
     silent: str = ""                   # lockstep: what the last "waiting" event named
+    handover: Authority | None = None  # granted, takes effect at the next tick boundary
+    handover_why: str = ""
     stale_steps: int = 0
 
     @property
@@ -111,7 +117,8 @@ def state_out(p: PlantProtocolParams, run: PlantRun, inputs: tuple = ()) -> Out:
         "z": core.ground_z(p.sim, st.x[S.X], st.x[S.Y]),
         "u_applied": np.array(st.u_applied, dtype=np.float64),
         "tick": core.tick_of(p.sim, st), "authority": run.authority.source,
-        "epoch": run.authority.epoch, "outcome": st.outcome,
+        "epoch": run.authority.epoch, "authority_boot": run.authority.boot,
+        "outcome": st.outcome,
         "goal_region": st.reached_goal_region}, inputs, run.episode)
 
 
@@ -155,7 +162,8 @@ def resume(p: PlantProtocolParams, m: State, wall: float) -> tuple[PlantRun, tup
     t = m.header.stamp
     sim = core.PlantState(t, int(round(t / p.sim.dt)), np.array(m.x, dtype=np.float64),
                           np.array(m.u_applied, dtype=np.float64), bool(m.goal_region))
-    run = PlantRun(sim, m.header.episode, Authority(m.authority or p.authority, 0, m.epoch),
+    run = PlantRun(sim, m.header.episode,
+                   Authority(m.authority or p.authority, m.authority_boot, m.epoch),
                    offered_wall=wall, waiting_since=wall)
     return run, (event_out(run, "resume", f"t={t:.2f} from {m.header.source}"),
                  state_out(p, run, m.header.inputs), clock_out(p, run))
@@ -217,6 +225,63 @@ def on_cmd(p: PlantProtocolParams, run: PlantRun, cmd: Cmd, wall: float,
         run, stepped = lockstep_tick(p, run, wall)
         outs += stepped
     return run, NEW, outs
+
+
+def on_handover(p: PlantProtocolParams, run: PlantRun, h: Handover, wall: float,
+                watch: Watch = NOBODY) -> tuple[PlantRun, str, tuple[Out, ...]]:
+    """Judge a request that planner `h.to` take over; grant it if it names the authority and
+    epoch in force and `h.to` beats. It takes effect at the next tick boundary: in
+    lockstep the pending tick (offered again, naming the new authority)."""
+    a = run.authority
+    if run.done:
+        return run, "the episode is over", ()
+    if h.header.episode != run.episode:
+        return run, "another episode", ()
+    if h.to.split("/")[0] != "planner":
+        return run, f"{h.to} is not a planner", ()
+    if h.current != a.source or h.epoch != a.epoch:
+        return run, f"names {h.current} epoch {h.epoch}, not {a.source} epoch {a.epoch}", ()
+    beat = newest(watch, h.to) if not h.to_boot else watch.beats.get((h.to, h.to_boot))
+    if beat is None or not is_alive(beat, wall):
+        return run, f"{h.to} does not beat", ()
+    if (h.to, beat.boot) == (a.source, a.boot):
+        return run, "already the authority", ()
+    why = f"handover from {a.source}" + (f": {h.reason}" if h.reason else "")
+    run = replace(run, handover=Authority(h.to, beat.boot, a.epoch + 1), handover_why=why)
+    if p.lockstep:        # the pending tick offered again, naming its new authority
+        run, outs = _take_over(run)
+        inputs = () if run.cmd is None else (ref(p.cmd_key, run.cmd),)
+        return replace(run, offered_wall=wall), NEW, (*outs, state_out(p, run, inputs))
+    return run, NEW, ()
+
+
+def _take_over(run: PlantRun) -> tuple[PlantRun, tuple[Out, ...]]:
+    """A granted handover in effect."""
+    a = run.handover
+    if a is None:
+        return run, ()
+    run = replace(run, authority=a, handover=None)
+    return run, (event_out(run, "authority", f"{a.source} boot {a.boot} epoch {a.epoch} "
+                                             f"({run.handover_why})"),)
+
+
+def _failover(run: PlantRun, watch: Watch, wall: float) -> tuple[PlantRun, tuple[Out, ...]]:
+    """The authority's beats have stopped (it had beaten) and a planner beats as standby:
+    the standby (the first by name) takes over now."""
+    a = run.authority
+    beat = newest(watch, a.source)
+    if not a.boot or beat is None or alive(watch, a.source, wall, a.boot):
+        return run, ()
+    standby = sorted((b for b in watch.beats.values() if b.role == "standby"
+                      and b.source.startswith("planner/") and is_alive(b, wall)),
+                     key=lambda b: b.source)
+    if not standby:
+        return run, ()
+    s = standby[0]
+    run = replace(run, handover=Authority(s.source, s.boot, a.epoch + 1),
+                  handover_why=f"fail-over from {a.source}: no heartbeat for "
+                               f"{wall - beat.wall:.2f} s")
+    return _take_over(run)
 
 
 def map_stamp(p: PlantProtocolParams, cmd: Cmd) -> float | None:
@@ -283,18 +348,32 @@ def lockstep_tick(p: PlantProtocolParams, run: PlantRun, wall: float
     return replace(run, offered_wall=wall, waiting_since=wall), outs
 
 
-def realtime_step(p: PlantProtocolParams, run: PlantRun) -> tuple[PlantRun, tuple[Out, ...]]:
-    """One plant period on the wall clock's beat (the shell keeps the beat)."""
+def realtime_step(p: PlantProtocolParams, run: PlantRun, wall: float = 0.0,
+                  watch: Watch = NOBODY) -> tuple[PlantRun, tuple[Out, ...]]:
+    """One plant period on the wall clock's beat (the shell keeps the beat): a fail-over
+    or, on a tick boundary, a granted handover first."""
     if run.done:
         return run, ()
-    return _step(p, run)
+    run, outs = _failover(run, watch, wall)
+    if run.handover is not None and run.sim.step % p.sim.steps_per_tick == 0:
+        run, more = _take_over(run)
+        outs += more
+    run, stepped = _step(p, run)
+    return run, outs + stepped
 
 
-def lockstep_idle(p: PlantProtocolParams, run: PlantRun, wall: float, missing: str = ""
-                  ) -> tuple[PlantRun, tuple[Out, ...]]:
-    """No command for the pending tick yet: re-offer it when due, end the episode when it
-    has waited too long. `missing` names what is not beating, for the event."""
-    if run.done or wall - run.offered_wall < p.reoffer_s:
+def lockstep_idle(p: PlantProtocolParams, run: PlantRun, wall: float, missing: str = "",
+                  watch: Watch = NOBODY) -> tuple[PlantRun, tuple[Out, ...]]:
+    """No command for the pending tick yet: fail over to a standby if the authority's beats
+    have stopped (the state re-offered at once, naming it); else re-offer the tick when due,
+    end the episode when it has waited too long. `missing` names what is not beating."""
+    if run.done:
+        return run, ()
+    run, outs = _failover(run, watch, wall)
+    if outs:
+        inputs = () if run.cmd is None else (ref(p.cmd_key, run.cmd),)
+        return replace(run, offered_wall=wall), (*outs, state_out(p, run, inputs))
+    if wall - run.offered_wall < p.reoffer_s:
         return run, ()
     waited = wall - run.waiting_since
     outs: tuple[Out, ...] = ()
