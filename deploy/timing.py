@@ -33,15 +33,19 @@ def stats_ms(times: list[float]) -> dict[str, float]:
 
 class ChainLog:
     """Headers of the pipeline's depth, map, cmd and state messages as they pass
-    (bus-level subscriber callbacks; only the msgpack header is read)."""
+    (bus-level subscriber callbacks; the msgpack header, and a state's authority). A message
+    is named by (seq, stamp), a command also by its source: several planners publish on
+    `cmd` (a swap, a standby, a rogue), and a state's inputs name the command it applied
+    of the authority it names."""
 
     def __init__(self, vehicle: str):
         self.keys = {t: topic_key(vehicle, t) for t in ("depth", "map", "cmd", "state")}
         self.lock = threading.Lock()
-        self.depth: dict[int, float] = {}                 # seq -> publish wall time
-        self.map: dict[int, tuple[float, int]] = {}       # seq -> (wall, depth seq)
-        self.cmd: dict[int, tuple[float, int]] = {}       # seq -> (wall, map seq)
-        self.applied: dict[int, float] = {}               # cmd seq -> first state applying it
+        Ref = tuple[int, float]                           # (seq, stamp)
+        self.depth: dict[Ref, float] = {}                 # -> publish wall time
+        self.map: dict[Ref, tuple[float, Ref | None]] = {}    # -> (wall, its depth)
+        self.cmd: dict[tuple[str, int, float], tuple[float, Ref | None]] = {}  # (source, ...)
+        self.applied: dict[tuple[str, int, float], float] = {}  # cmd -> first state applying it
         self.states = 0
         self.stale = 0
 
@@ -49,41 +53,43 @@ class ChainLog:
         return {key: (lambda sample, t=topic: self.on(t, sample.payload.to_bytes()))
                 for topic, key in self.keys.items()}
 
-    def _ref(self, h: dict[str, Any], topic: str) -> int | None:
-        for key, seq, _ in h.get("inputs", []):
+    def _ref(self, h: dict[str, Any], topic: str) -> tuple[int, float] | None:
+        for key, seq, stamp in h.get("inputs", []):
             if key == self.keys[topic]:
-                return int(seq)
+                return int(seq), round(float(stamp), 6)
         return None
 
     def on(self, topic: str, payload: bytes) -> None:
         try:
-            h = msgpack.unpackb(payload, raw=False)["header"]
+            m = msgpack.unpackb(payload, raw=False)
+            h = m["header"]
+            wall, me = float(h["wall_time"]), (int(h["seq"]), round(float(h["stamp"]), 6))
         except Exception:          # malformed traffic is the codec tests' business
             return
-        wall = float(h["wall_time"])
         with self.lock:
             if topic == "depth":
-                self.depth[int(h["seq"])] = wall
+                self.depth[me] = wall
             elif topic == "map":
-                self.map[int(h["seq"])] = (wall, self._ref(h, "depth"))
+                self.map[me] = (wall, self._ref(h, "depth"))
             elif topic == "cmd":
-                self.cmd[int(h["seq"])] = (wall, self._ref(h, "map"))
+                self.cmd[(str(h.get("source", "")), *me)] = (wall, self._ref(h, "map"))
             else:
                 self.states += 1
-                seq = self._ref(h, "cmd")
-                if seq is None:
+                ref = self._ref(h, "cmd")
+                if ref is None:
                     self.stale += 1
-                elif seq not in self.applied:
-                    self.applied[seq] = wall
+                else:
+                    key = (str(m.get("authority", "")), *ref)
+                    self.applied.setdefault(key, wall)
 
     def chains(self) -> list[tuple[float, float, float, float]]:
         """Every complete chain: (depth, map, cmd, first state applying it) wall times."""
         with self.lock:
             out = []
-            for seq, applied in self.applied.items():
-                c_wall, m_seq = self.cmd.get(seq, (None, None))
-                m_wall, d_seq = self.map.get(m_seq, (None, None))
-                d_wall = self.depth.get(d_seq)
+            for cmd, applied in self.applied.items():
+                c_wall, m_ref = self.cmd.get(cmd, (None, None))
+                m_wall, d_ref = self.map.get(m_ref, (None, None))
+                d_wall = self.depth.get(d_ref)
                 if None not in (c_wall, m_wall, d_wall):
                     out.append((d_wall, m_wall, c_wall, applied))
             return out

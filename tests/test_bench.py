@@ -57,29 +57,34 @@ def test_bus_bench_delivers_map_sized_messages_through_a_loopback_router():
 
 
 def test_chain_log_follows_depth_map_cmd_to_the_first_state_that_applies_it():
+    """Messages are named by (seq, stamp), commands also by source, and a state applies the
+    command of the authority it names: another planner's command of the same seq and stamp
+    (a standby, a rogue) is not taken for it."""
     import msgpack
 
     from deploy.bench import ChainLog
     log = ChainLog("v0")
 
-    def put(topic, seq, wall, inputs=()):
-        log.on(topic, msgpack.packb({"header": {"seq": seq, "wall_time": wall, "inputs": [
-            [log.keys[t], s, 0.0] for t, s in inputs]}}))
+    def put(topic, seq, stamp, wall, inputs=(), source="x/0", **body):
+        log.on(topic, msgpack.packb({"header": {
+            "seq": seq, "stamp": stamp, "wall_time": wall, "source": source,
+            "inputs": [[log.keys[t], s, st] for t, s, st in inputs]}, **body}))
 
-    put("depth", 0, 10.00)
-    put("depth", 1, 10.10)
-    put("map", 0, 10.15, [("depth", 1)])                  # the map of the newer frame
-    put("cmd", 5, 10.25, [("state", 3), ("map", 0)])
-    put("state", 0, 10.20)                                # no command: a stale step
-    put("state", 1, 10.26, [("cmd", 5)])                  # the first step applying cmd 5
-    put("state", 2, 10.28, [("cmd", 5)])
-    put("state", 3, 10.30, [("cmd", 9)])                  # a command never seen: no chain
+    put("depth", 0, 0.0, 10.00)
+    put("depth", 1, 0.1, 10.10)
+    put("map", 0, 0.1, 10.15, [("depth", 1, 0.1)])                 # the newer frame's map
+    put("cmd", 5, 0.1, 10.25, [("state", 3, 0.1), ("map", 0, 0.1)], "planner/0")
+    put("cmd", 5, 0.1, 10.40, [("state", 3, 0.1), ("map", 0, 0.1)], "planner/rogue")
+    put("state", 0, 0.1, 10.20, authority="planner/0")              # no command: stale
+    put("state", 1, 0.12, 10.26, [("cmd", 5, 0.1)], authority="planner/0")  # the first
+    put("state", 2, 0.14, 10.28, [("cmd", 5, 0.1)], authority="planner/0")
+    put("state", 3, 0.16, 10.30, [("cmd", 9, 0.1)], authority="planner/0")  # never seen
     log.on("state", b"\xc1 not msgpack")                  # ignored, not raised
     s = log.summary()
-    assert s["chains"] == 1 and s["commands"] == 1 and s["states"] == 4 and s["stale_states"] == 1
+    assert s["chains"] == 1 and s["commands"] == 2 and s["states"] == 4 and s["stale_states"] == 1
     assert abs(s["end_to_end"]["median_ms"] - 160.0) < 1e-6     # 10.26 - 10.10
     assert abs(s["depth_to_map"]["median_ms"] - 50.0) < 1e-6
-    assert abs(s["map_to_cmd"]["median_ms"] - 100.0) < 1e-6
+    assert abs(s["map_to_cmd"]["median_ms"] - 100.0) < 1e-6     # planner/0's, not the rogue's
     assert abs(s["cmd_to_applied"]["median_ms"] - 10.0) < 1e-6
 
 

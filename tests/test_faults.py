@@ -143,8 +143,9 @@ def test_hostile_messages_do_not_stop_a_realtime_episode(tmp_path):
         assert (topic, why) in rej, sorted(rej)
 
 
-# the sensor's loss is the mapper's (perception stale): `vamppi bench faults` measures both
-@pytest.mark.parametrize("name", ["mapper", "planner", "plant", "router"])
+# the sensor's loss is the mapper's (perception stale), the router's the planner's (commands
+# stale) and a restart like in lockstep: `vamppi bench faults` measures all four
+@pytest.mark.parametrize("name", ["mapper", "planner", "plant"])
 def test_realtime_loss_of_a_service_stops_the_vehicle_and_it_drives_on(name, tmp_path):
     """Killed at speed: the plant brakes to a standstill (perception or commands stale);
     restarted, the service rejoins, the vehicle drives on and reaches the goal."""
@@ -206,8 +207,8 @@ def test_vamppi_up_restarts_a_wedged_planner_in_realtime():
     assert "commands stale" in up.stderr()
 
 
-@pytest.mark.parametrize("name,sig", [(n, signal.SIGSTOP) for n in
-                                      ("plant", "sensor", "mapper", "planner")]
+# the sensor and mapper are detected as the plant and planner are: `vamppi bench faults`
+@pytest.mark.parametrize("name,sig", [(n, signal.SIGSTOP) for n in ("plant", "planner")]
                          + [("planner", signal.SIGKILL)])
 def test_vamppi_up_restarts_a_wedged_or_killed_service(name, sig, reference, tmp_path):
     """A service stopped (its liveliness token stays up) or killed mid-episode: `vamppi up`
@@ -271,7 +272,8 @@ def test_kill_9_of_vamppi_up_leaves_no_process_behind(clock):
     assert left == [] and gone < 2.0, (left, gone)
 
 
-@pytest.mark.parametrize("cut_s", [2.0, 12.0])
+# past the lease (within it: the router stopped for 1.5 s, below)
+@pytest.mark.parametrize("cut_s", [12.0])
 def test_lockstep_waits_out_a_cut_link_and_goes_on_bit_for_bit(cut_s, reference, tmp_path):
     b, stats, ev, _ = run_with_cut(SHORT, cut_s, tmp_path, 1.0)
     assert ev.kind == "timeout"
@@ -304,11 +306,12 @@ def test_a_cut_link_brakes_the_vehicle_which_drives_on_after_and_nothing_is_lost
         assert plant["state"]["late"] > 0 and beats["missing"] > 0
 
 
-@pytest.mark.parametrize("clock", ["lockstep", "realtime"])
+# realtime: `vamppi bench faults`
+@pytest.mark.parametrize("clock", ["lockstep"])
 def test_a_slow_lossy_link_delays_but_does_not_change_the_episode(clock, reference, tmp_path):
     """Every service behind a user-space proxy that delays each chunk by 20 ms and 1 % of
-    them by 200 ms more (a TCP retransmission): lockstep is bit-identical, realtime
-    reaches the goal."""
+    them by 200 ms more (a TCP retransmission): lockstep is bit-identical (realtime reaches
+    the goal: the benchmark)."""
     over = SHORT if clock == "lockstep" else RT
     with Pipeline(over, tmp_path) as b:
         link = Delay(("127.0.0.1", b.port), delay_s=0.02, loss=0.01, retransmit_s=0.2)
