@@ -54,6 +54,8 @@ from services.plant.protocol import OUTCOMES
 
 log = logging.getLogger(__name__)
 
+SETTLE_S = 0.5           # after the outcome: the final state's depth, map and command flow
+
 
 def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
@@ -360,6 +362,7 @@ def up(cfg: Config, overrides: list[str], config_path: str | None = None,
                                    time_to_goal_s=None if ev.kind != "success"
                                    else round(ev.time_to_goal_s, 6),
                                    wall_time_s=round(time.monotonic() - (start_wall or wall0), 3))
+                    time.sleep(SETTLE_S)    # the answers to the final state reach the recording
                     break
                 if sup.procs["plant"].poll() == 0:      # the plant ends with its episode
                     ended_at = ended_at or time.monotonic()
