@@ -124,6 +124,19 @@ def cmd_service(args: argparse.Namespace, cfg: Config) -> int:
     return 0
 
 
+def cmd_certs(args: argparse.Namespace, cfg: Config) -> int:
+    """A local CA and certificates per role for mutual TLS (deploy/certs.py)."""
+    from common.security import ROLES
+    from deploy.certs import CertError, make_certs
+    try:
+        made = make_certs(args.dir, tuple(args.name or ROLES), tuple(args.host), args.days)
+    except CertError as exc:
+        print(f"vamppi certs: {exc}", file=sys.stderr)
+        return 1
+    print(json.dumps({"ca": str(Path(args.dir) / "ca.pem"), "certificates": list(map(str, made))}))
+    return 0
+
+
 def cmd_swap(args: argparse.Namespace, cfg: Config) -> int:
     """Start a planner instance beside the running one and hand it the authority."""
     from deploy.swap import SwapError, promote, swap
@@ -179,7 +192,7 @@ def cmd_router(args: argparse.Namespace, cfg: Config) -> int:
     from common.config import BusConfig
     stop = threading.Event()
     stop_on_signals(stop)
-    bus = BusConfig("router", cfg.bus.connect, cfg.bus.listen or ("tcp/0.0.0.0:7447",),
+    bus = BusConfig("router", cfg.bus.connect, cfg.bus.listen or ("tcp/127.0.0.1:7447",),
                     cfg.bus.multicast_scouting)
     with open_session(bus):
         logging.getLogger(__name__).info("router listening on %s", ", ".join(bus.listen))
@@ -497,6 +510,15 @@ def build_parser() -> argparse.ArgumentParser:
     add_bus_args(p)
     p.set_defaults(func=cmd_service)
 
+    p = sub.add_parser("certs", help="a local CA and a certificate per role (mutual TLS)")
+    p.add_argument("dir", help="where the CA and certificates are written (the CA is kept)")
+    p.add_argument("--name", action="append", metavar="ROLE[-INSTANCE]",
+                   help="a certificate to make (repeatable; default: one per role)")
+    p.add_argument("--host", action="append", default=["localhost", "127.0.0.1"],
+                   help="a name or address the certificates are valid for (repeatable)")
+    p.add_argument("--days", type=int, default=365)
+    p.set_defaults(func=cmd_certs)
+
     p = sub.add_parser("swap", help="hot-swap the planner: a new instance takes over")
     p.add_argument("service", choices=("planner",))
     p.add_argument("--instance", help="the new instance's id (default: a fresh one)")
@@ -560,7 +582,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
     p.set_defaults(func=cmd_bench)
 
-    p = sub.add_parser("router", help="a standalone Zenoh router (default tcp/0.0.0.0:7447)")
+    p = sub.add_parser("router", help="a standalone Zenoh router (default tcp/127.0.0.1:7447, "
+                                      "this machine only; --listen tcp/0.0.0.0:7447 for others)")
     add_config_args(p)
     add_bus_args(p)
     p.set_defaults(func=cmd_router)

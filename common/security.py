@@ -1,0 +1,143 @@
+"""Who may do what on the bus: each role's manifest, zenoh's access-control rules generated
+from it, and the mutual-TLS settings of a role's session.
+
+One place: the manifests are derived from the topic table in `common.bus` (TOPICS names
+what each service publishes, INPUTS what it reads) and its key builders, never restated.
+A role is a certificate's common name (or a username): the four services, and the tools.
+
+- `manifest(role, vehicle)`: the keys the role puts, subscribes to, queries, answers
+  queries on (queryables), and declares liveliness tokens on.
+- `access_control(vehicle, roles)`: zenoh's `access_control` block, deny by default: one
+  rule per (role, kind of message), one subject per role (its certificate common name and
+  username), one policy joining them. A router enforces it on every client's messages,
+  both ways: what a client sends (ingress) and what reaches it (egress).
+- `tls(certs, role, listen)`: the `transport/link/tls` block of a session (mTLS).
+
+Zenoh matches verbatim chunks (`@adv`, used by zenoh-ext's advanced publishers and
+subscribers for the cached topics) only by name, never by `*` or `**`, so those keys are
+listed explicitly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from common.bus import (
+    CACHED,
+    INPUTS,
+    PREFIX,
+    SERVICES,
+    TOPICS,
+    admin_key,
+    alive_key,
+    heartbeat_key,
+    launcher_key,
+    topic_key,
+)
+
+TOOLS = ("recorder", "viewer", "operator")   # read-only, read-only, swaps and launcher requests
+ROLES = (*SERVICES, *TOOLS, "router")        # a router: another site's, forwarding everything
+
+
+@dataclass(frozen=True)
+class Manifest:
+    """What one role does on the bus, as key expressions."""
+    role: str
+    put: tuple[str, ...] = ()
+    subscribe: tuple[str, ...] = ()
+    query: tuple[str, ...] = ()
+    queryable: tuple[str, ...] = ()
+    token: tuple[str, ...] = ()
+    watch_tokens: tuple[str, ...] = ()        # liveliness subscribers and queries
+
+
+def _adv(keys: list[str]) -> list[str]:
+    """zenoh-ext's keys beside a cached topic's (its publisher's cache and liveliness)."""
+    return [f"{k}/@adv/**" for k in keys]
+
+
+def manifest(role: str, vehicle: str) -> Manifest:
+    """The keys `role` uses on the bus of `vehicle` (module docstring)."""
+    if role not in ROLES:
+        raise ValueError(f"unknown role {role!r}; one of {', '.join(ROLES)}")
+    everything = f"{PREFIX}/{vehicle}/**"
+    admin_all = f"{PREFIX}/{vehicle}/admin/**"
+    cached = [topic_key(vehicle, t) for t in CACHED]
+    if role in SERVICES:
+        outs = [topic_key(vehicle, t) for t, (owner, _) in TOPICS.items() if owner == role]
+        ins = [topic_key(vehicle, t) for t in INPUTS[role]]
+        mine_cached = [topic_key(vehicle, t) for t, owner in CACHED.items() if owner == role]
+        return Manifest(
+            role,
+            put=(*outs, heartbeat_key(vehicle, role)),
+            # every service watches the heartbeats (the plant: its planners'); its inputs;
+            # the cached topics' late samples come as query replies
+            subscribe=(*ins, heartbeat_key(vehicle), *_adv(ins)),
+            query=(admin_all, *_adv(ins)),
+            queryable=(admin_key(vehicle, role, "*", "**"), *_adv(mine_cached)),
+            token=(alive_key(vehicle, role, "*"), *_adv(mine_cached)),
+            watch_tokens=(alive_key(vehicle), *_adv(ins)))
+    if role == "router":                # all of it, both ways, and zenoh-ext's keys
+        every = (everything, *_adv(cached))
+        return Manifest(role, put=every, subscribe=every, query=every, queryable=every,
+                        token=every, watch_tokens=every)
+    if role == "operator":              # vamppi swap: a handover, a launcher request
+        return Manifest(role, put=(topic_key(vehicle, "handover"), launcher_key(vehicle)),
+                        subscribe=(everything,), query=(admin_all,),
+                        watch_tokens=(f"{PREFIX}/{vehicle}/alive/**",))
+    # recorder and viewer: read everything, write nothing
+    return Manifest(role, subscribe=(everything, *_adv(cached)),
+                    query=(admin_all, *_adv(cached)),
+                    watch_tokens=(f"{PREFIX}/{vehicle}/alive/**", *_adv(cached)))
+
+
+# (manifest field, the client's messages the router lets in, the messages it lets out to it)
+_FLOWS = (
+    ("put", ("put",), ()),
+    ("subscribe", ("declare_subscriber",), ("put",)),
+    ("query", ("query",), ("reply",)),
+    ("queryable", ("declare_queryable", "reply"), ("query",)),
+    ("token", ("liveliness_token",), ()),
+    ("watch_tokens", ("declare_liveliness_subscriber", "liveliness_query"),
+     ("liveliness_token",)),
+)
+
+
+def access_control(vehicle: str, roles: tuple[str, ...] = ROLES,
+                   usernames: dict[str, str] | None = None) -> dict[str, Any]:
+    """Zenoh's `access_control` block for a router serving `vehicle`: deny by default, each
+    role allowed exactly its manifest. A role's subject is its certificate's common name
+    and, where `usernames` names one, a username (user/password authentication)."""
+    rules, subjects, policies = [], [], []
+    for role in roles:
+        m = manifest(role, vehicle)
+        ids = []
+        for name, ingress, egress in _FLOWS:
+            keys = list(getattr(m, name))
+            if not keys:
+                continue
+            for flow, messages in (("ingress", ingress), ("egress", egress)):
+                if messages:
+                    rid = f"{role}-{name}-{flow}"
+                    rules.append({"id": rid, "permission": "allow", "flows": [flow],
+                                  "messages": list(messages), "key_exprs": keys})
+                    ids.append(rid)
+        subject = {"id": role, "cert_common_names": [role]}
+        if usernames and role in usernames:
+            subject["usernames"] = [usernames[role]]
+        subjects.append(subject)
+        policies.append({"id": role, "rules": ids, "subjects": [role]})
+    return {"enabled": True, "default_permission": "deny", "rules": rules,
+            "subjects": subjects, "policies": policies}
+
+
+def tls(certs: str | Path, name: str, listen: bool = False) -> dict[str, Any]:
+    """The `transport/link/tls` block of a session with the certificate `name` (a role, or
+    `role-instance`) from the directory `vamppi certs` wrote: mutual TLS, the peer checked
+    against the local CA."""
+    d = Path(certs)
+    own = {"listen_private_key" if listen else "connect_private_key": str(d / f"{name}.key"),
+           "listen_certificate" if listen else "connect_certificate": str(d / f"{name}.pem")}
+    return {"root_ca_certificate": str(d / "ca.pem"), "enable_mtls": True, **own}

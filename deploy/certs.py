@@ -1,0 +1,72 @@
+"""`vamppi certs DIR`: a local certificate authority and one certificate per role (and
+instance), for mutual TLS between every client and router (common.security).
+
+Made with the `openssl` command line (nothing is downloaded): an EC P-256 CA, and for each
+certificate a key, a request and the CA's signature. The common name is the role, which
+the routers' access-control rules match; the organisational unit names the instance. Every
+certificate is valid for both ends of a link (serverAuth and clientAuth) and for the
+names in `hosts` (loopback by default; a router's address across machines). Keys are
+written 0600. To revoke a certificate, issue a new CA and certificates (zenoh checks no
+revocation list): docs/security.md.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+from common.security import ROLES
+
+DAYS = 365
+
+
+class CertError(RuntimeError):
+    """The certificates could not be made (no openssl, a bad name, a failed command)."""
+
+
+def _run(*args: str) -> None:
+    r = subprocess.run(["openssl", *args], capture_output=True, text=True)
+    if r.returncode != 0:
+        raise CertError(f"openssl {args[0]} failed: {r.stderr.strip()[-500:]}")
+
+
+def make_certs(out: str | Path, names: tuple[str, ...] = ROLES,
+               hosts: tuple[str, ...] = ("localhost", "127.0.0.1"), days: int = DAYS
+               ) -> list[Path]:
+    """The CA (`ca.pem`, `ca.key`, made once and kept) and a certificate per name in
+    `out`: `role` or `role-instance`, common name the role. The written certificates."""
+    if shutil.which("openssl") is None:
+        raise CertError("the openssl command is not installed")
+    d = Path(out)
+    d.mkdir(parents=True, exist_ok=True)
+    os.chmod(d, 0o700)
+    ca_key, ca = d / "ca.key", d / "ca.pem"
+    if not ca.exists():
+        _run("req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1",
+             "-nodes", "-keyout", str(ca_key), "-out", str(ca), "-days", str(days),
+             "-subj", "/CN=vamppi-ca")
+        os.chmod(ca_key, 0o600)
+    sans = ",".join(f"IP:{h}" if h.replace(".", "").isdigit() or ":" in h else f"DNS:{h}"
+                    for h in hosts)
+    made = []
+    for name in names:
+        role, _, instance = name.partition("-")
+        if role not in ROLES or not all(c.isalnum() or c in "_." for c in instance):
+            raise CertError(f"{name!r}: a role ({', '.join(ROLES)}), optionally -instance")
+        key, pem = d / f"{name}.key", d / f"{name}.pem"
+        with tempfile.TemporaryDirectory() as tmp:
+            csr, ext = Path(tmp) / "req.csr", Path(tmp) / "ext.cnf"
+            ext.write_text(f"subjectAltName={sans}\nbasicConstraints=CA:FALSE\n"
+                           "keyUsage=digitalSignature,keyEncipherment\n"
+                           "extendedKeyUsage=serverAuth,clientAuth\n")
+            _run("req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes",
+                 "-keyout", str(key), "-out", str(csr),
+                 "-subj", f"/CN={role}/OU={instance or '0'}")
+            os.chmod(key, 0o600)
+            _run("x509", "-req", "-in", str(csr), "-CA", str(ca), "-CAkey", str(ca_key),
+                 "-CAcreateserial", "-out", str(pem), "-days", str(days), "-extfile", str(ext))
+        made.append(pem)
+    return made

@@ -1,0 +1,121 @@
+"""Roles, generated access control and mutual TLS (common.security, deploy.certs): the
+manifests against the topic table, and a real router enforcing the generated rules."""
+
+import json
+import shutil
+import time
+
+import pytest
+import zenoh
+
+from common.bus import INPUTS, TOPICS, alive_key, key_matches, topic_key
+from common.security import ROLES, access_control, manifest, tls
+from deploy.certs import make_certs
+from deploy.launch import free_port
+
+V = "v0"
+
+
+def test_manifests_are_the_topic_table():
+    """Each service puts exactly the topics it owns (and its heartbeat) and subscribes to its
+    inputs; only the plant puts state, events and clock, only planners cmd; the read-only
+    tools put nothing."""
+    for topic, (owner, _) in TOPICS.items():
+        key = topic_key(V, topic)
+        putters = [r for r in ROLES if r != "router"
+                   and any(key_matches(k, key) for k in manifest(r, V).put)]
+        assert putters == [owner] + (["operator"] if topic == "handover" else []), topic
+    for service, inputs in INPUTS.items():
+        m = manifest(service, V)
+        assert all(any(key_matches(k, topic_key(V, t)) for k in m.subscribe) for t in inputs)
+    for tool in ("recorder", "viewer"):
+        assert manifest(tool, V).put == () and manifest(tool, V).token == ()
+    with pytest.raises(ValueError, match="unknown role"):
+        manifest("rogue", V)
+
+
+def test_generated_rules_deny_by_default_and_name_each_role():
+    acl = access_control(V, usernames={"planner": "p1"})
+    assert acl["enabled"] and acl["default_permission"] == "deny"
+    assert {s["id"] for s in acl["subjects"]} == set(ROLES)
+    assert next(s for s in acl["subjects"] if s["id"] == "planner")["usernames"] == ["p1"]
+    ids = {r["id"] for r in acl["rules"]}
+    assert all(set(p["rules"]) <= ids and p["subjects"] == [p["id"]] for p in acl["policies"])
+    viewer = [r for r in acl["rules"] if r["id"].startswith("viewer-")]
+    assert viewer and not any("put" in r["messages"] and r["flows"] == ["ingress"]
+                              for r in viewer)
+
+
+needs_openssl = pytest.mark.skipif(shutil.which("openssl") is None, reason="no openssl")
+
+
+def _session(mode, certs, name, port, listen=False, acl=None):
+    c = zenoh.Config()
+    c.insert_json5("mode", json.dumps(mode))
+    c.insert_json5("scouting/multicast/enabled", "false")
+    c.insert_json5("listen/endpoints" if listen else "connect/endpoints",
+                   json.dumps([f"tls/{'127.0.0.1' if listen else 'localhost'}:{port}"]))
+    if name is not None:
+        c.insert_json5("transport/link/tls", json.dumps(tls(certs, name, listen)))
+    else:
+        c.insert_json5("transport/link/tls",
+                       json.dumps({"root_ca_certificate": str(certs / "ca.pem")}))
+    if acl is not None:
+        c.insert_json5("access_control", json.dumps(acl))
+    return zenoh.open(c)
+
+
+@needs_openssl
+def test_a_router_with_the_generated_rules_refuses_what_a_role_may_not_do(tmp_path):
+    """mTLS and the generated rules on a real router: a client without a certificate, or
+    with one of another CA, cannot connect; the planner's command reaches the recorder; the
+    viewer's cmd, state, events, clock and a liveliness token of a planner do not."""
+    certs, other = tmp_path / "certs", tmp_path / "other"
+    make_certs(certs, ("router", "planner", "viewer", "recorder"))
+    make_certs(other, ("planner",))
+    assert (certs / "planner.key").stat().st_mode & 0o077 == 0
+    port = free_port()
+    router = _session("router", certs, "router", port, listen=True, acl=access_control(V))
+    got, tokens = [], []
+    rec = _session("client", certs, "recorder", port)
+    rec.declare_subscriber(f"vamppi/{V}/**", lambda s: got.append(
+        (str(s.key_expr), s.payload.to_bytes())))
+    rec.liveliness().declare_subscriber(alive_key(V), lambda s: tokens.append(
+        str(s.key_expr)))
+    planner = _session("client", certs, "planner", port)
+    viewer = _session("client", certs, "viewer", port)
+    time.sleep(0.5)
+    planner.put(topic_key(V, "cmd"), b"planner")
+    planner.put(topic_key(V, "state"), b"planner")              # not the planner's topic
+    for topic in ("cmd", "state", "events", "clock"):
+        viewer.put(topic_key(V, topic), b"viewer")
+    viewer_token = viewer.liveliness().declare_token(alive_key(V, "planner", "0"))
+    planner_token = planner.liveliness().declare_token(alive_key(V, "planner", "0"))
+    time.sleep(0.8)
+    assert got == [(topic_key(V, "cmd"), b"planner")]
+    assert tokens == [alive_key(V, "planner", "0")]                 # the planner's alone
+    planner_token.undeclare()
+    time.sleep(0.3)
+    for name, d in ((None, certs), ("planner", other)):
+        with pytest.raises(zenoh.ZError):
+            _session("client", d, name, port)
+    viewer_token.undeclare()
+    for s in (viewer, planner, rec, router):
+        s.close()
+
+
+@needs_openssl
+def test_vamppi_certs_names_the_role_and_instance(tmp_path):
+    import subprocess
+    import sys
+    r = subprocess.run([sys.executable, "-m", "deploy.cli", "certs", str(tmp_path),
+                        "--name", "planner-7", "--name", "viewer"], capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert len(json.loads(r.stdout)["certificates"]) == 2
+    subject = subprocess.run(["openssl", "x509", "-in", str(tmp_path / "planner-7.pem"),
+                              "-noout", "-subject"], capture_output=True, text=True).stdout
+    assert "CN = planner" in subject and "OU = 7" in subject
+    bad = subprocess.run([sys.executable, "-m", "deploy.cli", "certs", str(tmp_path),
+                          "--name", "rogue"], capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 1 and "a role" in bad.stderr
