@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
 
@@ -476,6 +477,19 @@ def peek(payload: bytes) -> tuple[str, Header]:
     version = raw.get("version")
     return raw["schema"], _decode_header(raw["schema"], raw.get("header"),
                                          version if isinstance(version, int) else 0)
+
+
+def on_decoded(expected: type[M], handle: Callable[[M], None]) -> Callable[[str, bytes], None]:
+    """A subscriber callback `(key, payload)` that hands `handle` each payload decoded as
+    `expected` and drops what does not decode (an observer's, not a service's: services
+    count what they drop)."""
+    def callback(_key: str, payload: bytes) -> None:
+        try:
+            msg = decode(payload, expected)
+        except DecodeError:
+            return
+        handle(msg)
+    return callback
 
 
 def json_schema(cls: type[Message]) -> dict[str, Any]:

@@ -37,7 +37,7 @@ from common.bus import (
     topic_key,
 )
 from common.config import BusConfig, Config, load_config
-from common.messages import DecodeError, Event, Heartbeat, State, decode
+from common.messages import DecodeError, Event, Heartbeat, State, decode, on_decoded
 from deploy.launch import free_port, service_command
 from deploy.recording import Recorder, iter_messages, recording_metadata
 from services.plant.protocol import OUTCOMES
@@ -109,9 +109,12 @@ class Pipeline:
         self.states_seen = 0
         self.beats: list[tuple[float, Heartbeat]] = []
         self._lock = threading.Lock()
-        self._subs = [self.bus.subscriber(topic_key(v, "state"), self._on_state),
-                      self.bus.subscriber(topic_key(v, "events"), self._on_event),
-                      self.bus.subscriber(heartbeat_key(v), self._on_beat)]
+        self._subs = [self.bus.subscriber(topic_key(v, "state"), on_decoded(State,
+                                                                            self._on_state)),
+                      self.bus.subscriber(topic_key(v, "events"), on_decoded(Event,
+                                                                             self._on_event)),
+                      self.bus.subscriber(heartbeat_key(v), on_decoded(Heartbeat,
+                                                                       self._on_beat))]
         self._stats: dict[str, Any] | None = None
 
     # processes ----------------------------------------------------------------
@@ -159,30 +162,18 @@ class Pipeline:
         return t
 
     # observing ------------------------------------------------------------------
-    def _on_state(self, _key: str, payload: bytes) -> None:
-        try:
-            s = decode(payload, State)
-        except DecodeError:
-            return
+    def _on_state(self, s: State) -> None:
         with self._lock:
             self.states_seen += 1
             if self.last_state is None or s.header.stamp >= self.last_state.header.stamp:
                 self.last_state = s
 
-    def _on_event(self, _key: str, payload: bytes) -> None:
-        try:
-            e = decode(payload, Event)
-        except DecodeError:
-            return
+    def _on_event(self, e: Event) -> None:
         with self._lock:
             self.events.append(e)
             self.event_at.append(time.monotonic())
 
-    def _on_beat(self, _key: str, payload: bytes) -> None:
-        try:
-            hb = decode(payload, Heartbeat)
-        except DecodeError:
-            return
+    def _on_beat(self, hb: Heartbeat) -> None:
         with self._lock:
             self.beats.append((time.monotonic(), hb))
 

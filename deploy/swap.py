@@ -37,7 +37,7 @@ from common.bus import (
     topic_key,
 )
 from common.config import Config, ConfigError, as_overrides, config_from_dict, load_config
-from common.messages import DecodeError, Heartbeat, State, decode
+from common.messages import Heartbeat, State, on_decoded
 
 
 class SwapError(RuntimeError):
@@ -58,23 +58,17 @@ class _Watch:
         self.state: State | None = None
         self.status = ""
         self._lock = threading.Lock()
-        self._subs = [bus.subscriber(topic_key(vehicle, "state"), self._on_state),
-                      bus.subscriber(heartbeat_key(vehicle, "planner"), self._on_beat)]
+        self._subs = [
+            bus.subscriber(topic_key(vehicle, "state"), on_decoded(State, self._on_state)),
+            bus.subscriber(heartbeat_key(vehicle, "planner"), on_decoded(Heartbeat,
+                                                                         self._on_beat))]
 
-    def _on_state(self, _key: str, payload: bytes) -> None:
-        try:
-            s = decode(payload, State)
-        except DecodeError:
-            return
+    def _on_state(self, s: State) -> None:
         with self._lock:
             if self.state is None or s.header.stamp >= self.state.header.stamp:
                 self.state = s
 
-    def _on_beat(self, _key: str, payload: bytes) -> None:
-        try:
-            hb = decode(payload, Heartbeat)
-        except DecodeError:
-            return
+    def _on_beat(self, hb: Heartbeat) -> None:
         if hb.header.source == self.source:
             with self._lock:
                 self.status = hb.status
