@@ -133,6 +133,20 @@ def zenoh_config(cfg: BusConfig, wait: bool = False):
     zc.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
     zc.insert_json5("listen/endpoints", json.dumps(list(cfg.listen)))
     zc.insert_json5("scouting/multicast/enabled", json.dumps(bool(cfg.multicast_scouting)))
+    if cfg.certs:
+        from common.security import tls
+        router = cfg.mode == "router"
+        name = cfg.identity or ("router" if router else "")
+        if not name:
+            raise ValueError("bus.certs is set but not bus.identity: which certificate?")
+        block = tls(cfg.certs, name, listen=bool(cfg.listen))
+        if cfg.connect and cfg.listen:       # a router linked to another: both ends
+            block |= tls(cfg.certs, name, listen=False)
+        zc.insert_json5("transport/link/tls", json.dumps(block))
+        if router:
+            from common.security import access_control
+            # every vehicle's keys (the rules' vehicle chunk a wildcard)
+            zc.insert_json5("access_control", json.dumps(access_control("*")))
     if wait and cfg.mode == "client":
         zc.insert_json5("connect/timeout_ms", "-1")
         zc.insert_json5("connect/exit_on_failure", "false")

@@ -171,6 +171,10 @@ class BusConfig:
     connect: tuple[str, ...] = _rng()
     listen: tuple[str, ...] = _rng()
     multicast_scouting: bool = _rng()
+    # mutual TLS (common.security): "" is plain TCP; the other two have defaults here too,
+    # so that a router's or a test's BusConfig can be built without them
+    certs: str = field(default="", metadata={**_rng().metadata, "empty": True})
+    identity: str = field(default="", metadata={**_rng().metadata, "empty": True})
 
 
 @dataclass(frozen=True)
@@ -269,7 +273,7 @@ def _check_value(section: str, f: dataclasses.Field, value: Any) -> Any:
         if not math.isfinite(value):
             raise ConfigError(f"{name} must be finite, got {value!r}")
     elif typ == "str":
-        if not isinstance(value, str) or not value:
+        if not isinstance(value, str) or not (value or meta.get("empty")):
             raise ConfigError(f"{name} must be a non-empty string, got {value!r}")
         if meta["choices"] and value not in meta["choices"]:
             raise ConfigError(f"{name} must be one of {', '.join(meta['choices'])}; got {value!r}")

@@ -110,10 +110,16 @@ def access_control(vehicle: str, roles: tuple[str, ...] = ROLES,
     """Zenoh's `access_control` block for a router serving `vehicle`: deny by default, each
     role allowed exactly its manifest. A role's subject is its certificate's common name
     and, where `usernames` names one, a username (user/password authentication)."""
-    rules, subjects, policies = [], [], []
+    # A declared publisher sends only where it knows of a subscriber, a querier asks only
+    # where it knows of a queryable: every client hears of those (their key expressions,
+    # often wider than the keys it may use, such as a recorder's `vamppi/<vehicle>/**`)
+    rules = [{"id": "declarations", "permission": "allow", "flows": ["egress"],
+              "messages": ["declare_subscriber", "declare_queryable"],
+              "key_exprs": ["**", f"{PREFIX}/*/*/*/@adv/**"]}]
+    subjects, policies = [], []
     for role in roles:
         m = manifest(role, vehicle)
-        ids = []
+        ids = ["declarations"]
         for name, ingress, egress in _FLOWS:
             keys = list(getattr(m, name))
             if not keys:
@@ -133,11 +139,24 @@ def access_control(vehicle: str, roles: tuple[str, ...] = ROLES,
             "subjects": subjects, "policies": policies}
 
 
+def identity(certs: str | Path, role: str, instance: str = "0") -> str:
+    """The certificate a process of `role` presents: `role-instance` where `vamppi certs`
+    made one, else the role's."""
+    return f"{role}-{instance}" if (Path(certs) / f"{role}-{instance}.pem").exists() else role
+
+
+def with_identity(cfg: Any, role: str, instance: str = "0") -> Any:
+    """`cfg` (a Config) presenting `role`'s certificate unless bus.identity names one."""
+    if not cfg.bus.certs or cfg.bus.identity:
+        return cfg
+    return cfg.replace(**{"bus.identity": identity(cfg.bus.certs, role, instance)})
+
+
 def tls(certs: str | Path, name: str, listen: bool = False) -> dict[str, Any]:
     """The `transport/link/tls` block of a session with the certificate `name` (a role, or
     `role-instance`) from the directory `vamppi certs` wrote: mutual TLS, the peer checked
     against the local CA."""
-    d = Path(certs)
+    d = Path(certs).resolve()
     own = {"listen_private_key" if listen else "connect_private_key": str(d / f"{name}.key"),
            "listen_certificate" if listen else "connect_certificate": str(d / f"{name}.pem")}
     return {"root_ca_certificate": str(d / "ca.pem"), "enable_mtls": True, **own}

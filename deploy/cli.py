@@ -30,6 +30,7 @@ from common import compile_cache
 from common.config import Config, ConfigError, load_config
 from common.memory import keep_large_buffers
 from common.process import PARENT_ENV, die_with_parent, stop_on_signals, when_orphaned
+from common.security import with_identity
 from common.supervision import RETIRED_EXIT
 
 
@@ -108,6 +109,7 @@ def cmd_service(args: argparse.Namespace, cfg: Config) -> int:
         die_with_parent()
         when_orphaned(parent_gone)
     os.environ.pop(PARENT_ENV, None)
+    cfg = with_identity(cfg, args.name, args.instance)
     module = importlib.import_module(SERVICE_MAINS[args.name])
     role = "standby" if args.standby else args.role
     if args.name == "planner":
@@ -140,6 +142,7 @@ def cmd_certs(args: argparse.Namespace, cfg: Config) -> int:
 def cmd_swap(args: argparse.Namespace, cfg: Config) -> int:
     """Start a planner instance beside the running one and hand it the authority."""
     from deploy.swap import SwapError, promote, swap
+    cfg = with_identity(cfg, "operator")
     try:
         if args.to:
             report = promote(cfg, args.to, keep_old=args.keep_old, timeout_s=args.timeout)
@@ -192,8 +195,10 @@ def cmd_router(args: argparse.Namespace, cfg: Config) -> int:
     from common.config import BusConfig
     stop = threading.Event()
     stop_on_signals(stop)
-    bus = BusConfig("router", cfg.bus.connect, cfg.bus.listen or ("tcp/127.0.0.1:7447",),
-                    cfg.bus.multicast_scouting)
+    scheme = "tls" if cfg.bus.certs else "tcp"
+    bus = BusConfig("router", cfg.bus.connect, cfg.bus.listen or (f"{scheme}/127.0.0.1:7447",),
+                    cfg.bus.multicast_scouting, cfg.bus.certs,
+                    cfg.bus.identity or ("router" if cfg.bus.certs else ""))
     with open_session(bus):
         logging.getLogger(__name__).info("router listening on %s", ", ".join(bus.listen))
         stop.wait()
@@ -203,7 +208,7 @@ def cmd_router(args: argparse.Namespace, cfg: Config) -> int:
 def cmd_health(args: argparse.Namespace, cfg: Config) -> int:
     """Every live service instance of the vehicle and its health counters, one JSON line each."""
     from common.bus import ZenohTransport, admin_key, alive_instances, query_json
-    bus = ZenohTransport.open(cfg.bus)
+    bus = ZenohTransport.open(with_identity(cfg, "viewer").bus)
     try:
         found = sorted(alive_instances(bus, cfg.episode.vehicle))
         for service, instance in found:
@@ -274,7 +279,7 @@ def cmd_record(args: argparse.Namespace, cfg: Config) -> int:
         signal.signal(sig, lambda *_: stop.set())
     keys = args.keys or f"{PREFIX}/{cfg.episode.vehicle}/**"
     log = logging.getLogger(__name__)
-    with open_session(cfg.bus) as session:
+    with open_session(with_identity(cfg, "recorder").bus) as session:
         meta = recording_metadata(cfg.to_dict(), keys)
         services = live_service_configs(session, cfg.episode.vehicle)
         if services:

@@ -239,28 +239,9 @@ class Pipeline:
         return self._stats
 
     def trajectory(self) -> np.ndarray:
-        """The 50 Hz trajectory (t, x) from the recording, one row per stamp (a re-offered
-        tick is the same state again), of the plant processes that ran the episode (those
-        that published its events: not another client's states)."""
+        """The 50 Hz trajectory of the episode, from the recording (`recorded_trajectory`)."""
         self.close()
-        boots = set()
-        for m in iter_messages(self.path):
-            if m.key.endswith("/plant/events"):
-                try:
-                    boots.add(decode(m.data, Event).header.boot)
-                except DecodeError:
-                    pass
-        rows: dict[float, np.ndarray] = {}
-        for m in iter_messages(self.path):
-            if m.key.endswith("/plant/state"):
-                try:
-                    s = decode(m.data, State)
-                except DecodeError:
-                    continue
-                if s.header.boot in boots:
-                    rows.setdefault(round(s.header.stamp, 6),
-                                    np.concatenate([[s.header.stamp], s.x]))
-        return np.array([rows[k] for k in sorted(rows)])
+        return recorded_trajectory(self.path)
 
     def __enter__(self) -> Pipeline:
         return self
@@ -386,6 +367,31 @@ def rejections(text: str) -> list[tuple[str, str]]:
     import re
     return [(m.group(1), m.group(2)) for m in re.finditer(
         r"rejected a (\w+) message: (.+?) from \S+ seq \d+ stamp", text)]
+
+
+
+def recorded_trajectory(path: Path) -> np.ndarray:
+    """The 50 Hz trajectory (t, x) in a recording, one row per stamp (a re-offered tick is
+    the same state again), of the plant processes that ran the episode (those that
+    published its events: not another client's states)."""
+    boots = set()
+    for m in iter_messages(path):
+        if m.key.endswith("/plant/events"):
+            try:
+                boots.add(decode(m.data, Event).header.boot)
+            except DecodeError:
+                pass
+    rows: dict[float, np.ndarray] = {}
+    for m in iter_messages(path):
+        if m.key.endswith("/plant/state"):
+            try:
+                s = decode(m.data, State)
+            except DecodeError:
+                continue
+            if s.header.boot in boots:
+                rows.setdefault(round(s.header.stamp, 6),
+                                np.concatenate([[s.header.stamp], s.x]))
+    return np.array([rows[k] for k in sorted(rows)])
 
 
 class Up:

@@ -63,9 +63,18 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def router_config(port: int) -> BusConfig:
-    return BusConfig(mode="router", connect=(), listen=(f"tcp/127.0.0.1:{port}",),
-                     multicast_scouting=False)
+def router_config(port: int, certs: str = "") -> BusConfig:
+    """A router on loopback: plain TCP, or with `certs` mutual TLS and the generated
+    access-control rules (common.security)."""
+    return BusConfig(mode="router", connect=(),
+                     listen=(f"{'tls' if certs else 'tcp'}/127.0.0.1:{port}",),
+                     multicast_scouting=False, certs=certs, identity="router" if certs else "")
+
+
+def client_endpoint(port: int, certs: str = "") -> str:
+    """How a client on this machine reaches `router_config(port, certs)` (TLS checks the
+    certificate's name: localhost)."""
+    return f"tls/localhost:{port}" if certs else f"tcp/127.0.0.1:{port}"
 
 
 def service_command(name: str, endpoint: str, overrides: list[str], config_path: str | None,
@@ -265,8 +274,8 @@ def services_up(cfg: Config, overrides: list[str], config_path: str | None = Non
     service has stopped.
     """
     port = free_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
-    with open_session(router_config(port)) as session:
+    endpoint = client_endpoint(port, cfg.bus.certs)
+    with open_session(router_config(port, cfg.bus.certs)) as session:
         for key, callback in (subscriptions or {}).items():
             session.declare_subscriber(key, callback)
         finish = on_session(session) if on_session is not None else None

@@ -119,3 +119,42 @@ def test_vamppi_certs_names_the_role_and_instance(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "deploy.cli", "certs", str(tmp_path),
                           "--name", "rogue"], capture_output=True, text=True, timeout=60)
     assert bad.returncode == 1 and "a role" in bad.stderr
+
+
+@needs_openssl
+@pytest.mark.integration
+def test_vamppi_up_over_mutual_tls_is_bit_identical_and_denies_a_wrong_role(tmp_path):
+    """`vamppi up` with bus.certs: every service on mutual TLS through a router enforcing the
+    generated rules; the lockstep episode is the in-process one, bit for bit, while a client
+    with a viewer's certificate puts on cmd, state, events and clock and raises a planner's
+    liveliness token: the router denies all of it, so the recording (the router's own
+    session) holds none of it and the plant never sees it."""
+    import os
+
+    from common.config import load_config
+    from deploy.faults import Up, recorded_trajectory
+    from deploy.runner import run_episode
+    certs = tmp_path / "certs"
+    make_certs(certs)
+    lock = ["planner.samples=64", "episode.timeout_s=8.0", 'episode.scenario="open-field"']
+    ref = run_episode(load_config(overrides=lock)).trajectory
+    marker = f"tls{os.getpid()}"
+    path = tmp_path / "bus.mcap"
+    up = Up(["--record", str(path), "--set", f"bus.certs={json.dumps(str(certs))}",
+             *sum((["--set", o] for o in lock), [])], marker)
+    t = up.wait_line("all services up", 240)
+    line = next(text for at, text in up.lines if at >= t and "router on" in text)
+    port = int(line.split("router on ")[1].split()[0].rsplit(":", 1)[1])
+    rogue = _session("client", certs, "viewer", port)
+    token = rogue.liveliness().declare_token(alive_key(marker, "planner", "9"))
+    for _ in range(50):
+        for topic in ("cmd", "state", "events", "clock"):
+            rogue.put(topic_key(marker, topic), b"forged")
+        time.sleep(0.02)
+    summary = up.finish()
+    token.undeclare()
+    rogue.close()
+    assert summary["outcome"] == "timeout" and summary["failure"] is None, up.stderr()[-3000:]
+    from deploy.recording import iter_messages
+    assert not [m.key for m in iter_messages(path) if m.data == b"forged"]
+    assert recorded_trajectory(path).tobytes() == ref.tobytes()
