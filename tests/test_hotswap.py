@@ -21,10 +21,10 @@ from deploy.timing import authority_changes
 pytestmark = pytest.mark.integration
 
 LOCK = ["planner.samples=64", "episode.timeout_s=8.0", 'episode.scenario="open-field"']
-# realtime: a weaker drive (1500 N, the goal at 17 s instead of 10 s), so that a planner
+# realtime: a weaker drive (2000 N, the goal at 13 s instead of 10 s), so that a planner
 # started mid-episode on a busy 2-core machine is warm well before the goal
 RT = ["planner.samples=64", 'episode.scenario="open-field"', 'episode.clock="realtime"',
-      "episode.timeout_s=40", "vehicle.force_max_n=1500"]
+      "episode.timeout_s=40", "vehicle.force_max_n=2000"]
 
 
 def planner(p, instance, overrides, *args):
@@ -163,7 +163,7 @@ def test_a_swap_inside_vamppi_up(tmp_path):
     retires, and the summary counts no restart."""
     marker = f"upswap{os.getpid()}"
     up = Up(["--samples", "64", "--scenario", "open-field", "--clock", "realtime",
-             "--set", "episode.timeout_s=40", "--set", "vehicle.force_max_n=1500"], marker)
+             "--set", "episode.timeout_s=40", "--set", "vehicle.force_max_n=2000"], marker)
     t = up.wait_line("all services up", 240)
     line = next(text for at, text in up.lines if at >= t and "router on" in text)
     endpoint = line.split("router on ")[1].split()[0]

@@ -143,7 +143,10 @@ class PlannerRun:
         return source == self.source and boot in (0, self.boot)
 
 
-FOLLOW_WAIT_S = 1.0      # how long a new authority waits for the command it must follow
+# how long a new authority waits for the command it must follow: in lockstep (time waits)
+# a second; in realtime one control period, well inside the plant's command timeout, after
+# which it solves from the plan it has followed so far
+FOLLOW_WAIT_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -240,12 +243,13 @@ def commands(run: PlannerRun, ctx: PlannerCtx) -> bool:
 def due(p: PlannerProtocolParams, run: PlannerRun, wall: float) -> Job | None:
     """The solve to make now, if any: in the newest episode that has one. A standby that is
     not the authority never solves; a new authority not before it has followed the command
-    obeyed before its first tick (or waited FOLLOW_WAIT_S for it)."""
+    obeyed before its first tick (or waited FOLLOW_WAIT_S, in realtime a period, for it)."""
     for episode, ctx in reversed(run.episodes.items):
         mine = commands(run, ctx)
         if not mine and run.role != "candidate":
             continue
-        if (mine and ctx.needed_t0 is not None and wall - ctx.needed_wall < FOLLOW_WAIT_S
+        wait_s = FOLLOW_WAIT_S if p.lockstep else p.dt
+        if (mine and ctx.needed_t0 is not None and wall - ctx.needed_wall < wait_s
                 and (ctx.last_t is None or ctx.last_t < ctx.needed_t0 - EPS)):
             continue
         last = ctx.last_t
