@@ -174,8 +174,8 @@ def test_a_swap_inside_vamppi_up(tmp_path):
     assert json.loads(r.stdout)["by"] == "vamppi up"
     summary = up.finish()
     assert summary["outcome"] == "success" and summary["restarts"] == {}
-    assert '"retired": "planner"' in up.stderr(), [ln for ln in up.stderr().splitlines()
-                                                      if "authority" in ln or "planner" in ln]
+    # the old planner retired (the launcher may see its exit only after the episode)
+    assert "retired: another planner has the authority" in up.stderr()
     time.sleep(0.3)
     assert processes_with(marker) == []
 
