@@ -37,7 +37,8 @@ from common.bus import (
     topic_key,
 )
 from common.config import Config, ConfigError, as_overrides, config_from_dict, load_config
-from common.messages import Heartbeat, State, on_decoded
+from common.messages import Handover, Heartbeat, State, encode, on_decoded
+from common.protocol import Out, Stamper
 
 
 class SwapError(RuntimeError):
@@ -100,8 +101,6 @@ def promote(cfg: Config, to: str, keep_old: bool = True, timeout_s: float = 10.0
             ) -> dict[str, Any]:
     """Hand the authority to a planner instance that runs already (a standby): a Handover
     naming it, then wait until a state names it."""
-    from common.messages import Handover
-    from common.protocol import Out, Stamper
     vehicle, source = cfg.episode.vehicle, f"planner/{to}"
     t0 = time.monotonic()
     with open_session(cfg.bus) as session:
@@ -121,7 +120,6 @@ def promote(cfg: Config, to: str, keep_old: bool = True, timeout_s: float = 10.0
                                              "epoch": s.epoch, "retire": not keep_old,
                                              "reason": "vamppi swap --to"},
                 (), s.header.episode))
-            from common.messages import encode
             session.put(topic_key(vehicle, "handover"), encode(h))
             while watch.state.authority != source:
                 if time.monotonic() > deadline:
