@@ -6,6 +6,8 @@
   thread reading the interpreter's wakeup fd, which the C-level handler writes whatever
   the main thread is doing; the Python-level handler alone runs only when the main thread
   next executes Python.
+- `exit_now(code)`: a service whose main loop has unwound (bus closed, files written)
+  exits without the interpreter's finalization, which takes 0.2 s once JAX is loaded.
 - `die_with_parent()`: the kernel sends SIGKILL when the parent dies (Linux
   PR_SET_PDEATHSIG), so a launcher killed outright leaves no children behind. Not
   SIGTERM: a child blocked in a put to the launcher's dead router holds the interpreter
@@ -23,10 +25,11 @@ import sys
 import threading
 import time
 from collections.abc import Callable
+from typing import NoReturn
 
 log = logging.getLogger(__name__)
 
-STOP_GRACE_S = 0.8           # a stopped service is gone within a second of the signal
+STOP_GRACE_S = 0.5           # a stopped service is gone within a second of the signal
 _PR_SET_PDEATHSIG = 1
 
 
@@ -50,6 +53,17 @@ def stop_on_signals(stop: threading.Event, grace_s: float = STOP_GRACE_S,
         os._exit(code)
 
     threading.Thread(target=watch, daemon=True, name="signal-watch").start()
+
+
+def exit_now(code: int) -> NoReturn:
+    """Flush stdout, stderr and the logs, then end the process with `code` at once."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    logging.shutdown()
+    os._exit(code)
 
 
 PARENT_ENV = "VAMPPI_PARENT"  # the launcher's pid, as it started the child

@@ -29,7 +29,7 @@ from typing import Any
 from common import compile_cache
 from common.config import Config, ConfigError, load_config
 from common.memory import keep_large_buffers
-from common.process import PARENT_ENV, die_with_parent, stop_on_signals, when_orphaned
+from common.process import PARENT_ENV, die_with_parent, exit_now, stop_on_signals, when_orphaned
 from common.security import with_identity
 from common.supervision import RETIRED_EXIT
 
@@ -116,14 +116,12 @@ def cmd_service(args: argparse.Namespace, cfg: Config) -> int:
         ended = module.main(cfg, args.instance, stop, role=role,
                             take_over_after_s=args.take_over_after, retire=not args.keep_old,
                             take_over_at_s=args.take_over_at)
-        if ended == "retired":
-            return RETIRED_EXIT
-    elif role != "active":
+        return exit_now(RETIRED_EXIT if ended == "retired" else 0)
+    if role != "active":
         print(f"vamppi service: --role is for planners; {args.name} has none", file=sys.stderr)
         return 2
-    else:
-        module.main(cfg, args.instance, stop)
-    return 0
+    module.main(cfg, args.instance, stop)
+    return exit_now(0)
 
 
 def cmd_certs(args: argparse.Namespace, cfg: Config) -> int:
