@@ -7,6 +7,7 @@ Keys (one builder each, below):
     vamppi/<vehicle>/alive/<service>/<instance>               liveliness token
     vamppi/<vehicle>/admin/<service>/<instance>/health        queryable (JSON counters)
     vamppi/<vehicle>/admin/<service>/<instance>/config        queryable (JSON config)
+    vamppi/<vehicle>/admin/<service>/<instance>/clock         queryable: its wall clock
     vamppi/<vehicle>/admin/<service>/<instance>/latest/<topic>  queryable: the newest
                                                               message of a topic it holds
 
@@ -28,6 +29,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Generic, Protocol, TypeVar
 
 from common.config import BusConfig
@@ -125,32 +127,57 @@ class Transport(Protocol):
 
 
 def zenoh_config(cfg: BusConfig, wait: bool = False):
-    """A zenoh.Config from our BusConfig: mode, endpoints, multicast scouting. `wait`: a
-    client that finds no router waits for one (zenoh retries) instead of failing."""
+    """A zenoh.Config from our BusConfig: bus.zenoh's file if any, then mode, endpoints
+    (where set), multicast scouting, mutual TLS (bus.certs) or user/password
+    (bus.credentials), and for a secured router the generated access-control rules
+    (common.security). `wait`: a client that finds no router waits for one (zenoh retries)
+    instead of failing."""
     import zenoh
-    zc = zenoh.Config()
+    zc = zenoh.Config.from_file(cfg.zenoh) if cfg.zenoh else zenoh.Config()
     zc.insert_json5("mode", json.dumps(cfg.mode))
-    zc.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
-    zc.insert_json5("listen/endpoints", json.dumps(list(cfg.listen)))
+    for name, endpoints in (("connect", cfg.connect), ("listen", cfg.listen)):
+        if endpoints or not cfg.zenoh:
+            zc.insert_json5(f"{name}/endpoints", json.dumps(list(endpoints)))
     zc.insert_json5("scouting/multicast/enabled", json.dumps(bool(cfg.multicast_scouting)))
+    router = cfg.mode == "router"
+    name = cfg.identity or ("router" if router else "")
+    if (cfg.certs or cfg.credentials) and not name:
+        raise ValueError("bus.certs or bus.credentials is set but not bus.identity: who?")
+    users: tuple[str, ...] = ()
     if cfg.certs:
         from common.security import tls
-        router = cfg.mode == "router"
-        name = cfg.identity or ("router" if router else "")
-        if not name:
-            raise ValueError("bus.certs is set but not bus.identity: which certificate?")
-        block = tls(cfg.certs, name, listen=bool(cfg.listen))
-        if cfg.connect and cfg.listen:       # a router linked to another: both ends
+        listens, connects = (bool(endpoints_of(zc, k, cfg.mode)) for k in ("listen", "connect"))
+        block = tls(cfg.certs, name, listen=listens)
+        if connects and listens:             # a router linked to another: both ends
             block |= tls(cfg.certs, name, listen=False)
         zc.insert_json5("transport/link/tls", json.dumps(block))
+    if cfg.credentials:
+        from common.security import read_credentials
+        known = read_credentials(cfg.credentials)
+        users = tuple(known)
+        auth: dict[str, str] = {}
         if router:
-            from common.security import access_control
-            # every vehicle's keys (the rules' vehicle chunk a wildcard)
-            zc.insert_json5("access_control", json.dumps(access_control("*")))
+            auth["dictionary_file"] = str(Path(cfg.credentials).expanduser().resolve())
+        if name in known:
+            auth |= {"user": name, "password": known[name]}
+        elif not router:
+            raise ValueError(f"{cfg.credentials} has no line for {name!r}")
+        zc.insert_json5("transport/auth/usrpwd", json.dumps(auth))
+    if router and (cfg.certs or cfg.credentials):
+        from common.security import access_control
+        # every vehicle's keys (the rules' vehicle chunk a wildcard)
+        zc.insert_json5("access_control", json.dumps(access_control("*", users=users)))
     if wait and cfg.mode == "client":
         zc.insert_json5("connect/timeout_ms", "-1")
         zc.insert_json5("connect/exit_on_failure", "false")
     return zc
+
+
+def endpoints_of(zc: Any, name: str, mode: str) -> list[str]:
+    """A zenoh.Config's `listen` or `connect` endpoints for `mode` (zenoh's defaults are
+    per mode)."""
+    got = json.loads(zc.get_json(f"{name}/endpoints"))
+    return list(got.get(mode, [])) if isinstance(got, dict) else list(got)
 
 
 def open_session(cfg: BusConfig, wait: bool = False):
@@ -513,7 +540,8 @@ class Node:
 
     def __enter__(self) -> Node:
         self.transport = as_transport(self._bus)
-        for what, reply in (("health", self.health.as_dict), ("config", lambda: self.config_dict)):
+        for what, reply in (("health", self.health.as_dict), ("config", lambda: self.config_dict),
+                            ("clock", lambda: {"wall_time": time.time()})):
             key = admin_key(self.vehicle, self.service, self.instance, what)
             self._keep.append(self.transport.queryable(
                 key, lambda k, key=key, reply=reply: [(key, json.dumps(reply()).encode())]))
@@ -652,3 +680,37 @@ def alive_instances(transport: Transport, vehicle: str) -> list[tuple[str, str]]
 def query_json(transport: Transport, key: str, timeout: float = 2.0) -> list[Any]:
     """Answers of a queryable, parsed as JSON."""
     return [json.loads(payload) for _, payload in transport.query(key, timeout)]
+
+
+@dataclass(frozen=True)
+class ClockOffset:
+    """How far a process's wall clock is ahead of ours (`offset_s`), measured as NTP does
+    from a round trip: true within `rtt_s / 2`, whatever the hosts' clocks."""
+    offset_s: float
+    rtt_s: float
+
+    @staticmethod
+    def from_round_trip(sent: float, remote: float, received: float) -> ClockOffset:
+        """Asked at our `sent`, answered `remote` on its clock, heard at our `received`."""
+        return ClockOffset(remote - (sent + received) / 2, received - sent)
+
+    def best(self, other: ClockOffset | None) -> ClockOffset:
+        """The tighter of two measurements (the smaller round trip)."""
+        return self if other is None or self.rtt_s <= other.rtt_s else other
+
+
+def measure_clocks(transport: Transport, vehicle: str, rounds: int = 3,
+                   known: dict[str, ClockOffset] | None = None) -> dict[str, ClockOffset]:
+    """Every live instance's clock offset ("service/instance" -> the tightest of `rounds`
+    round trips to its clock queryable, and of `known`)."""
+    out = dict(known or {})
+    for service, instance in alive_instances(transport, vehicle):
+        source = f"{service}/{instance}"
+        for _ in range(rounds):
+            sent = time.time()
+            got = query_json(transport, admin_key(vehicle, service, instance, "clock"), 1.0)
+            received = time.time()
+            if got and isinstance(got[0], dict) and "wall_time" in got[0]:
+                m = ClockOffset.from_round_trip(sent, float(got[0]["wall_time"]), received)
+                out[source] = m.best(out.get(source))
+    return out

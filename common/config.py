@@ -175,6 +175,8 @@ class BusConfig:
     # so that a router's or a test's BusConfig can be built without them
     certs: str = field(default="", metadata={**_rng().metadata, "empty": True})
     identity: str = field(default="", metadata={**_rng().metadata, "empty": True})
+    credentials: str = field(default="", metadata={**_rng().metadata, "empty": True})
+    zenoh: str = field(default="", metadata={**_rng().metadata, "empty": True})
 
 
 @dataclass(frozen=True)

@@ -7,11 +7,13 @@ A role is a certificate's common name (or a username): the four services, and th
 
 - `manifest(role, vehicle)`: the keys the role puts, subscribes to, queries, answers
   queries on (queryables), and declares liveliness tokens on.
-- `access_control(vehicle, roles)`: zenoh's `access_control` block, deny by default: one
-  rule per (role, kind of message), one subject per role (its certificate common name and
-  username), one policy joining them. A router enforces it on every client's messages,
-  both ways: what a client sends (ingress) and what reaches it (egress).
+- `access_control(vehicle, roles, users)`: zenoh's `access_control` block, deny by
+  default: one rule per (role, kind of message), a subject per role's certificate common
+  name and one for its users, one policy joining them. A router enforces it on every
+  client's messages, both ways: what a client sends (ingress) and what reaches it (egress).
 - `tls(certs, role, listen)`: the `transport/link/tls` block of a session (mTLS).
+- `read_credentials(path)`: user/password authentication instead, where TLS is not wanted
+  (the users are roles; the router's dictionary and each client's own line).
 
 Zenoh matches verbatim chunks (`@adv`, used by zenoh-ext's advanced publishers and
 subscribers for the cached topics) only by name, never by `*` or `**`, so those keys are
@@ -20,6 +22,7 @@ listed explicitly.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -106,10 +109,11 @@ _FLOWS = (
 
 
 def access_control(vehicle: str, roles: tuple[str, ...] = ROLES,
-                   usernames: dict[str, str] | None = None) -> dict[str, Any]:
+                   users: tuple[str, ...] = ()) -> dict[str, Any]:
     """Zenoh's `access_control` block for a router serving `vehicle`: deny by default, each
-    role allowed exactly its manifest. A role's subject is its certificate's common name
-    and, where `usernames` names one, a username (user/password authentication)."""
+    role allowed exactly its manifest. A role's subjects are its certificate's common name
+    and, for user/password authentication, the `users` named `role` or `role-instance`
+    (zenoh matches a subject only if all its attributes do: hence one subject each)."""
     # A declared publisher sends only where it knows of a subscriber, a querier asks only
     # where it knows of a queryable: every client hears of those (their key expressions,
     # often wider than the keys it may use, such as a recorder's `vamppi/<vehicle>/**`)
@@ -130,33 +134,71 @@ def access_control(vehicle: str, roles: tuple[str, ...] = ROLES,
                     rules.append({"id": rid, "permission": "allow", "flows": [flow],
                                   "messages": list(messages), "key_exprs": keys})
                     ids.append(rid)
-        subject = {"id": role, "cert_common_names": [role]}
-        if usernames and role in usernames:
-            subject["usernames"] = [usernames[role]]
-        subjects.append(subject)
-        policies.append({"id": role, "rules": ids, "subjects": [role]})
+        subjects.append({"id": role, "cert_common_names": [role]})
+        mine = [u for u in users if role_of(u) == role]
+        if mine:
+            subjects.append({"id": f"{role}-users", "usernames": mine})
+        policies.append({"id": role, "rules": ids,
+                         "subjects": [role, *([f"{role}-users"] if mine else [])]})
     return {"enabled": True, "default_permission": "deny", "rules": rules,
             "subjects": subjects, "policies": policies}
 
 
-def identity(certs: str | Path, role: str, instance: str = "0") -> str:
-    """The certificate a process of `role` presents: `role-instance` where `vamppi certs`
-    made one, else the role's."""
-    return f"{role}-{instance}" if (Path(certs) / f"{role}-{instance}.pem").exists() else role
+def role_of(name: str) -> str:
+    """The role of a certificate or user name: `role` or `role-instance`."""
+    return name.partition("-")[0]
+
+
+def default_certs() -> Path:
+    """Where `vamppi up` keeps the certificates it makes on first use, and where a client
+    of a `tls/` endpoint looks when bus.certs is "": `$XDG_CONFIG_HOME/vamppi/certs`."""
+    base = os.environ.get("XDG_CONFIG_HOME") or str(Path.home() / ".config")
+    return Path(base) / "vamppi" / "certs"
+
+
+def read_credentials(path: str | Path) -> dict[str, str]:
+    """A user/password file, one `user:password` per line (zenoh's dictionary format);
+    a user is a role or `role-instance`."""
+    out = {}
+    for n, line in enumerate(Path(path).expanduser().read_text().splitlines(), 1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        user, sep, password = line.strip().partition(":")
+        if not sep or not user or not password or role_of(user) not in ROLES:
+            raise ValueError(f"{path}:{n}: not `role[-instance]:password`")
+        out[user] = password
+    return out
+
+
+def identity(certs: str | Path, role: str, instance: str = "0",
+             credentials: str | Path = "") -> str:
+    """The certificate (or user) a process of `role` presents: `role-instance` where `vamppi
+    certs` made one (or the credentials name one), else the role's."""
+    name = f"{role}-{instance}"
+    if certs and (Path(certs).expanduser() / f"{name}.pem").exists():
+        return name
+    if credentials and name in read_credentials(credentials):
+        return name
+    return role
 
 
 def with_identity(cfg: Any, role: str, instance: str = "0") -> Any:
-    """`cfg` (a Config) presenting `role`'s certificate unless bus.identity names one."""
-    if not cfg.bus.certs or cfg.bus.identity:
+    """`cfg` (a Config) presenting `role`'s certificate or user unless bus.identity names
+    one; a client of a `tls/` endpoint with bus.certs "" uses `default_certs()`."""
+    b = cfg.bus
+    if not b.certs and any(e.startswith("tls/") for e in (*b.connect, *b.listen)):
+        cfg = cfg.replace(**{"bus.certs": str(default_certs())})
+        b = cfg.bus
+    if not (b.certs or b.credentials) or b.identity:
         return cfg
-    return cfg.replace(**{"bus.identity": identity(cfg.bus.certs, role, instance)})
+    return cfg.replace(**{"bus.identity": identity(b.certs, role, instance, b.credentials)})
 
 
 def tls(certs: str | Path, name: str, listen: bool = False) -> dict[str, Any]:
     """The `transport/link/tls` block of a session with the certificate `name` (a role, or
     `role-instance`) from the directory `vamppi certs` wrote: mutual TLS, the peer checked
     against the local CA."""
-    d = Path(certs).resolve()
+    d = Path(certs).expanduser().resolve()
     own = {"listen_private_key" if listen else "connect_private_key": str(d / f"{name}.key"),
            "listen_certificate" if listen else "connect_certificate": str(d / f"{name}.pem")}
     return {"root_ca_certificate": str(d / "ca.pem"), "enable_mtls": True, **own}

@@ -312,11 +312,14 @@ def bench_bus(cfg: Config, reps: int, burst: int = 200) -> dict[str, Any]:
 
 def bench_pipeline(cfg: Config, overrides: list[str], samples: list[int],
                    controllers: list[str], duration_s: float,
-                   config_path: str | None = None, record: str | None = None) -> dict[str, Any]:
+                   config_path: str | None = None, record: str | None = None,
+                   secure: bool = True, flood: bool = False) -> dict[str, Any]:
     """Per controller and K: the whole pipeline in realtime mode for `duration_s` of
     wall time after the episode starts (or until it ends), on this machine.
     `record`: an MCAP file per case (`-<controller>-<K>` added when several), for
-    `vamppi timing` to analyse the very same messages."""
+    `vamppi timing` to analyse the very same messages. `secure`: mutual TLS and access
+    control (`services_up`'s default), else plain TCP; `flood`: a client with a viewer's
+    certificate puts copies of the commands on `cmd` as fast as it can (deploy.faults)."""
     from pathlib import Path
 
     from common.bus import Health, Inbox, topic_key
@@ -344,8 +347,17 @@ def bench_pipeline(cfg: Config, overrides: list[str], samples: list[int],
                                           "planner.samples": k})
                 hook = recording_hook(case_cfg, str(path), recorded)
             t0 = time.monotonic()
-            with services_up(cfg, run, config_path, subscriptions=subs, on_session=hook):
+            with services_up(cfg, run, config_path, subscriptions=subs, on_session=hook,
+                             secure=secure) as (_, endpoint, _sup):
                 ready_s = time.monotonic() - t0
+                flooder = None
+                if flood:
+                    from common.config import BusConfig
+                    from common.security import default_certs
+                    from deploy.faults import Flood
+                    flooder = Flood(BusConfig("client", (endpoint,), (), False,
+                                              cfg.bus.certs or str(default_certs()),
+                                              "viewer"), cfg.episode.vehicle)
                 while True:
                     if t_start is not None and time.monotonic() - t_start > duration_s:
                         break
@@ -360,13 +372,67 @@ def bench_pipeline(cfg: Config, overrides: list[str], samples: list[int],
                         outcome = ev.kind
                         break
                 wall = time.monotonic() - (t_start or t0)
+                flood_sent = None if flooder is None else flooder.close()
             cases.append({"controller": controller, "samples": k, "scenario":
-                          cfg.episode.scenario, "wall_s": round(wall, 1),
+                          cfg.episode.scenario, "secure": secure, "flood_sent": flood_sent,
+                          "wall_s": round(wall, 1),
                           "ready_s": round(ready_s, 1), "outcome": outcome or "running",
                           **chain.summary(), **recorded})
     return {"benchmark": "pipeline", **device_info(),
             "settings": {"clock": "realtime", "duration_s": duration_s,
                          "control_rate_hz": round(1.0 / cfg.planner.dt_s, 2),
+                         "overrides": overrides}, "cases": cases}
+
+
+def bench_security(cfg: Config, overrides: list[str], duration_s: float, reps: int,
+                   config_path: str | None = None) -> dict[str, Any]:
+    """The cost of security, side by side in one run: the realtime pipeline (the config's
+    controller and K) over plain TCP, over mutual TLS with the generated access control,
+    and the latter while a viewer's certificate floods `cmd` (denied at the router); the
+    three alternate `reps` times. From each run's recording (`vamppi timing`): the map
+    message's transport latency, the command rate, the end-to-end chain, stale states."""
+    import tempfile
+    from pathlib import Path
+
+    from deploy.timing import analyse
+    kinds = (("tcp", False, False), ("tls+acl", True, False), ("tls+acl, flood", True, True))
+    runs: dict[str, list[dict[str, Any]]] = {name: [] for name, _, _ in kinds}
+    with tempfile.TemporaryDirectory(prefix="vamppi-security-") as tmp:
+        for rep in range(reps):
+            for name, secure, flood in kinds:
+                path = Path(tmp) / f"{rep}-{len(runs[name])}-{secure}-{flood}.mcap"
+                case = bench_pipeline(cfg, overrides, [cfg.planner.samples],
+                                      [cfg.planner.controller], duration_s, config_path,
+                                      str(path), secure, flood)["cases"][0]
+                timing = analyse(path)
+                mp = next(t for t in timing["topics"] if t["key"].endswith("/mapper/map"))
+                runs[name].append({"map_transport": mp["transport"],
+                                   "command_rate_hz": case.get("command_rate_hz"),
+                                   "end_to_end": case.get("end_to_end"),
+                                   "stale_states": case["stale_states"],
+                                   "states": case["states"], "flood_sent": case["flood_sent"],
+                                   "outcome": case["outcome"]})
+
+    def med(name: str, get: Any) -> float:
+        return round(float(np.median([get(r) for r in runs[name]])), 3)
+    cases = []
+    for name, _, _ in kinds:
+        cases.append({"case": name, "runs": runs[name],
+                      "map_p50_ms": med(name, lambda r: r["map_transport"]["p50_ms"]),
+                      "map_p99_ms": med(name, lambda r: r["map_transport"]["p99_ms"]),
+                      "command_rate_hz": med(name, lambda r: r["command_rate_hz"]),
+                      "end_to_end_p50_ms": med(name, lambda r: r["end_to_end"]["median_ms"]),
+                      "stale_states": med(name, lambda r: r["stale_states"]),
+                      "flood_sent": med(name, lambda r: r["flood_sent"] or 0)})
+    base = cases[0]
+    for c in cases[1:]:
+        c["map_p50_over_tcp"] = round(c["map_p50_ms"] / base["map_p50_ms"], 3)
+        c["map_p99_over_tcp"] = round(c["map_p99_ms"] / base["map_p99_ms"], 3)
+        c["command_rate_over_tcp"] = round(c["command_rate_hz"] / base["command_rate_hz"], 3)
+    return {"benchmark": "security", **device_info(),
+            "settings": {"clock": "realtime", "duration_s": duration_s, "reps": reps,
+                         "controller": cfg.planner.controller, "samples": cfg.planner.samples,
+                         "scenario": cfg.episode.scenario, "interleaved": True,
                          "overrides": overrides}, "cases": cases}
 
 
@@ -476,6 +542,19 @@ def table(result: dict[str, Any]) -> str:
                          f"{c['wall_s']} | {c['mb_per_s']} | {c['file_mb']} "
                          f"({c['payload_mb']}) |")
         return "\n".join(lines)
+    if kind == "security":
+        st = result["settings"]
+        lines = [f"{head}; realtime, {st['controller']} K = {st['samples']}, "
+                 f"{st['scenario']}, {st['reps']} interleaved runs each (medians)", "",
+                 "| bus | map p50 ms | map p99 ms | commands/s | end-to-end p50 ms "
+                 "| stale states | flood puts | map p50 / tcp | map p99 / tcp |",
+                 "|---|---|---|---|---|---|---|---|---|"]
+        for c in result["cases"]:
+            lines.append(f"| {c['case']} | {c['map_p50_ms']} | {c['map_p99_ms']} "
+                         f"| {c['command_rate_hz']} | {c['end_to_end_p50_ms']} "
+                         f"| {c['stale_states']:g} | {c['flood_sent']:g} "
+                         f"| {c.get('map_p50_over_tcp', 1.0)} | {c.get('map_p99_over_tcp', 1.0)} |")
+        return "\n".join(lines)
     if kind == "peer":
         ours = {c["samples"]: c["median_ms"] for c in result["cases"]
                 if c["implementation"] == "vamppi"}
@@ -531,6 +610,8 @@ def main(cfg: Config, what: str, samples: list[int], controllers: list[str], rep
     if what == "pipeline":
         result = bench_pipeline(cfg, list(overrides), samples, controllers, duration_s,
                                 config_path, record)
+    elif what == "security":
+        result = bench_security(cfg, list(overrides), duration_s, reps, config_path)
     elif what == "record":
         result = bench_record(cfg, duration_s, [1.0, 0.0])
     elif what == "peer":

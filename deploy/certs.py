@@ -70,3 +70,25 @@ def make_certs(out: str | Path, names: tuple[str, ...] = ROLES,
                  "-CAcreateserial", "-out", str(pem), "-days", str(days), "-extfile", str(ext))
         made.append(pem)
     return made
+
+
+def ensure_certs(out: str | Path) -> Path:
+    """`out` holding a CA and a certificate per role, made now if it does not (`vamppi up`
+    on first use). Made in a directory beside it and renamed into place, so that two
+    launchers starting at once never see half of it."""
+    d = Path(out).expanduser()
+    if all((d / f"{n}.pem").exists() for n in ("ca", *ROLES)):
+        return d
+    d.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=".certs-", dir=d.parent))
+    make_certs(tmp)
+    try:
+        tmp.rename(d)
+    except OSError:                   # another launcher's landed first, or a partial one
+        if not (d / "ca.pem").exists():
+            raise CertError(f"{d} exists without a CA: remove it or name another "
+                            "(bus.certs)") from None
+        shutil.rmtree(tmp, ignore_errors=True)
+        make_certs(d, tuple(n for n in ROLES if not (d / f"{n}.pem").exists()))
+    return d
+

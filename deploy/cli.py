@@ -30,7 +30,7 @@ from common import compile_cache
 from common.config import Config, ConfigError, load_config
 from common.memory import keep_large_buffers
 from common.process import PARENT_ENV, die_with_parent, exit_now, stop_on_signals, when_orphaned
-from common.security import with_identity
+from common.security import default_certs, with_identity
 from common.supervision import RETIRED_EXIT
 
 
@@ -72,7 +72,12 @@ def overrides_from_args(args: argparse.Namespace) -> list[str]:
 
 
 def config_from_args(args: argparse.Namespace) -> Config:
-    return load_config(getattr(args, "config", None), overrides_from_args(args))
+    """The configuration: --config's TOML over the defaults, then the flags. A router's
+    --config may be a zenoh JSON5 file instead (a site's, deploy/sites): bus.zenoh."""
+    path, overrides = getattr(args, "config", None), overrides_from_args(args)
+    if args.command == "router" and path and path.endswith(".json5"):
+        path, overrides = None, [f"bus.zenoh={json.dumps(path)}", *overrides]
+    return load_config(path, overrides)
 
 
 def _positive_int(text: str) -> int:
@@ -188,17 +193,33 @@ def cmd_bench(args: argparse.Namespace, cfg: Config) -> int:
 
 
 def cmd_router(args: argparse.Namespace, cfg: Config) -> int:
-    """A standalone router until Ctrl-C (services on several machines connect to it)."""
-    from common.bus import open_session
-    from common.config import BusConfig
+    """A standalone router until Ctrl-C (services on several machines connect to it): a
+    site's JSON5 file (`--config deploy/sites/*.json5`) or the bus settings, secured with
+    bus.certs or bus.credentials; listening on loopback unless told otherwise."""
+    import dataclasses
+
+    from common.bus import endpoints_of, open_session, zenoh_config
     stop = threading.Event()
     stop_on_signals(stop)
-    scheme = "tls" if cfg.bus.certs else "tcp"
-    bus = BusConfig("router", cfg.bus.connect, cfg.bus.listen or (f"{scheme}/127.0.0.1:7447",),
-                    cfg.bus.multicast_scouting, cfg.bus.certs,
-                    cfg.bus.identity or ("router" if cfg.bus.certs else ""))
+    bus = dataclasses.replace(cfg.bus, mode="router")
+    try:
+        plain = zenoh_config(dataclasses.replace(bus, certs="", credentials=""))
+        listen = endpoints_of(plain, "listen", "router")
+        links = [*listen, *endpoints_of(plain, "connect", "router")]
+        if not bus.certs and any(e.startswith("tls/") for e in links):
+            bus = dataclasses.replace(bus, certs=str(default_certs()))
+        secured = bool(bus.certs or bus.credentials)
+        if not listen:
+            listen = [f"{'tls' if bus.certs else 'tcp'}/127.0.0.1:7447"]
+        bus = dataclasses.replace(bus, listen=tuple(listen), identity=bus.identity or (
+            "router" if secured else ""))
+        zenoh_config(bus)
+    except Exception as exc:               # a bad site file (zenoh.ZError), credentials
+        print(f"vamppi router: {exc}", file=sys.stderr)
+        return 2
     with open_session(bus):
-        logging.getLogger(__name__).info("router listening on %s", ", ".join(bus.listen))
+        logging.getLogger(__name__).info("router listening on %s%s", ", ".join(listen),
+                                         " (secured)" if secured else "")
         stop.wait()
     return 0
 
@@ -260,7 +281,7 @@ def cmd_up(args: argparse.Namespace, cfg: Config) -> int:
     signal.signal(signal.SIGTERM, _interrupt)     # SIGTERM unwinds like Ctrl-C: children stop
     try:
         summary = up(cfg, overrides_from_args(args), args.config, timeout_s=args.wall_timeout,
-                     record=args.record)
+                     record=args.record, secure=not args.insecure)
     except KeyboardInterrupt:
         print("vamppi up: interrupted, every service stopped", file=sys.stderr)
         return 130
@@ -420,6 +441,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--wall-timeout", type=float, default=900.0,
                    help="give up after this many wall-clock seconds")
     p.add_argument("--record", metavar="FILE.mcap", help="record every message of the episode")
+    p.add_argument("--insecure", action="store_true",
+                   help="plain TCP, no access control (default: mutual TLS on loopback with "
+                        "certificates made on first use, docs/security.md)")
     p.set_defaults(func=cmd_up)
 
     p = sub.add_parser("record", help="record bus traffic to MCAP (Ctrl-C stops)")
@@ -569,7 +593,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("bench", help="speed benchmarks (a table, or JSON with --json)")
     p.add_argument("what", choices=("planner", "mapper", "bus", "pipeline", "peer", "record",
-                                    "faults", "swaps"))
+                                    "faults", "swaps", "security"))
     p.add_argument("--samples", dest="samples_list",
                    help="sample counts K (planner, peer: 400,800,1000,4000; pipeline: 800)")
     p.add_argument("--controllers", help="planner: va,deterministic; pipeline: va")

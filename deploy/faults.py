@@ -14,6 +14,7 @@ started again, a link cut, or messages another client sends.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -21,7 +22,8 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +40,7 @@ from common.bus import (
 )
 from common.config import BusConfig, Config, load_config
 from common.messages import DecodeError, Event, Heartbeat, State, decode, on_decoded
+from deploy.certs import make_certs
 from deploy.launch import free_port, service_command
 from deploy.recording import Recorder, iter_messages, recording_metadata
 from services.plant.protocol import OUTCOMES
@@ -88,15 +91,22 @@ class Pipeline:
     states and events live."""
 
     def __init__(self, overrides: list[str], tmp: Path, listen: list[str] | None = None,
-                 port: int | None = None):
+                 port: int | None = None, endpoint: str | None = None,
+                 router_args: list[str] = (), router_prefix: list[str] | None = None,
+                 observer: BusConfig | None = None):
+        """`listen`: the router's endpoints (default loopback on `port`); `router_args`:
+        more of `vamppi router`'s arguments (a site's file, certificates) and
+        `router_prefix` its command's (a namespace); `observer`: the observer's session
+        (default a plain client of `endpoint`)."""
         self.overrides, self.tmp = list(overrides), tmp
         self.cfg: Config = load_config(overrides=overrides)
         self.port = port or free_port()
-        self.endpoint = f"tcp/127.0.0.1:{self.port}"
+        self.endpoint = endpoint or f"tcp/127.0.0.1:{self.port}"
         self.listen = listen or [self.endpoint]
+        self.router_args, self.router_prefix = list(router_args), router_prefix
         self.procs: dict[str, Proc] = {}
         self.router = self.start_router()
-        self.session = open_session(client(self.endpoint))
+        self.session = open_session(observer or client(self.endpoint))
         self.bus = ZenohTransport(self.session)
         v = self.cfg.episode.vehicle
         keys = f"vamppi/{v}/**"
@@ -119,12 +129,12 @@ class Pipeline:
 
     # processes ----------------------------------------------------------------
     def start_router(self) -> Proc:
-        args = [PY, "-m", "deploy.cli", "router"]
+        args = [PY, "-m", "deploy.cli", "router", *self.router_args]
         for ep in self.listen:
             args += ["--listen", ep]
         log = self.tmp / "router.log"
         before = log.read_text().count("router listening") if log.exists() else 0
-        p = Proc(args, log)
+        p = Proc(args, log, prefix=self.router_prefix)
         deadline = time.monotonic() + 30
         while log.read_text().count("router listening") <= before:
             assert time.monotonic() < deadline and p.p.poll() is None, p.tail()
@@ -139,8 +149,10 @@ class Pipeline:
         self.router = self.start_router()
 
     def service(self, name: str, extra: list[str] = (), endpoint: str | None = None,
-                prefix: list[str] | None = None, env: dict[str, str] | None = None) -> Proc:
-        cmd = service_command(name, endpoint or self.endpoint, [*self.overrides, *extra], None)
+                prefix: list[str] | None = None, env: dict[str, str] | None = None,
+                config: str | None = None) -> Proc:
+        cmd = service_command(name, endpoint or self.endpoint, [*self.overrides, *extra],
+                              config)
         p = Proc(cmd, self.tmp / f"{name}.log", env, prefix)
         self.procs[name] = p
         return p
@@ -319,9 +331,10 @@ class Rogue:
 
     TOPICS = ("state", "depth", "map", "cmd")
 
-    def __init__(self, endpoint: str, vehicle: str, at: int = 10):
+    def __init__(self, endpoint: str, vehicle: str, at: int = 10,
+                 bus: BusConfig | None = None):
         from common.messages import MESSAGE_TYPES
-        self.session = open_session(client(endpoint))
+        self.session = open_session(bus or client(endpoint))
         self.sent: list[tuple[str, str]] = []
         self._first: dict[str, Any] = {}
         self._count: dict[str, int] = {}
@@ -360,6 +373,46 @@ class Rogue:
 
     def close(self) -> None:
         self.session.close()
+
+
+def _flood(bus: BusConfig, key: str, stop: Any, sent: Any) -> None:
+    """A flood's process: copies of the newest sample on `key`, put until `stop`."""
+    os.nice(10)                          # the flood's own work yields to the pipeline's
+    latest: list[bytes] = []
+    with open_session(bus) as session:
+        session.declare_subscriber(key, lambda smp: latest.append(smp.payload.to_bytes()))
+        n = 0
+        while not stop.is_set():
+            if latest:
+                session.put(key, latest[-1])
+                n += 1
+                del latest[:-1]
+                if n % 1000 == 0:
+                    sent.value = n
+            else:
+                time.sleep(0.01)
+        sent.value = n
+
+
+class Flood:
+    """A client in its own process (niced) that puts copies of the newest real message of
+    `topic` as fast as it can until `close()`, which returns how many it put. Its own
+    process: a flood in the observer's would cost the observer, not the pipeline."""
+
+    def __init__(self, bus: BusConfig, vehicle: str, topic: str = "cmd"):
+        import multiprocessing
+        ctx = multiprocessing.get_context("spawn")
+        self._stop, self._sent = ctx.Event(), ctx.Value("q", 0)
+        self._proc = ctx.Process(target=_flood, args=(bus, topic_key(vehicle, topic),
+                                                     self._stop, self._sent), daemon=True)
+        self._proc.start()
+
+    def close(self) -> int:
+        self._stop.set()
+        self._proc.join(10)
+        if self._proc.is_alive():
+            self._proc.kill()
+        return int(self._sent.value)
 
 
 def rejections(text: str) -> list[tuple[str, str]]:
@@ -486,6 +539,18 @@ class Namespace:
     def mend(self) -> None:
         self._run("ip", "link", "set", self.host_dev, "up")
 
+    def wire(self, other: Namespace, subnet: int) -> tuple[str, str]:
+        """A veth pair straight from this namespace to `other` (a link between two sites
+        that bypasses this one): the addresses (`10.subnet.0.1` here, `.2` there)."""
+        ends = (f"vw{self.name[3:]}", f"vx{self.name[3:]}")
+        ips = (f"10.{subnet}.0.1", f"10.{subnet}.0.2")
+        self._run("ip", "link", "add", ends[0], "netns", self.name, "type", "veth", "peer",
+                  "name", ends[1], "netns", other.name)
+        for ns, dev, ip in ((self, ends[0], ips[0]), (other, ends[1], ips[1])):
+            ns.exec_("ip", "addr", "add", f"{ip}/24", "dev", dev)
+            ns.exec_("ip", "link", "set", dev, "up")
+        return ips
+
     def remove(self) -> None:
         subprocess.run(["ip", "link", "del", self.host_dev], capture_output=True, timeout=30)
         subprocess.run(["ip", "netns", "del", self.name], capture_output=True, timeout=30)
@@ -495,6 +560,81 @@ class Namespace:
 
     def __exit__(self, *exc: object) -> None:
         self.remove()
+
+
+SITES = Path(__file__).resolve().parent / "sites"
+SITE_ENDPOINT = "tls/127.0.0.1:7447"          # a site's router, to the services of its site
+
+
+@dataclass
+class Sites:
+    """Two sites in network namespaces (`two_sites`): the pipeline (site A's router, the
+    observer), the namespaces, the certificates, site B's router and its addresses."""
+    pipeline: Pipeline
+    a: Namespace
+    b: Namespace
+    certs: Path
+    router_b: Proc
+    wan_a: str
+
+    def secured(self, role: str, endpoint: str) -> BusConfig:
+        """A client session of `endpoint` presenting `role`'s certificate."""
+        return BusConfig("client", (endpoint,), (), False, str(self.certs), role)
+
+    def service(self, name: str, **kw: Any) -> Proc:
+        """`name` in its site: plant and sensor in A, mapper and planner in B, each a client
+        of its own site's router (deploy/sites/site-*.toml)."""
+        site = "a" if name in ("plant", "sensor") else "b"
+        ns = self.a if site == "a" else self.b
+        return self.pipeline.service(name, endpoint=SITE_ENDPOINT, prefix=ns.prefix,
+                                     config=str(SITES / f"site-{site}.toml"),
+                                     extra=[f"bus.certs={json.dumps(str(self.certs))}"], **kw)
+
+    def up(self, timeout: float = 240.0) -> None:
+        p = self.pipeline
+        for name in SERVICES:
+            self.service(name)
+        p.wait(lambda: set(SERVICES) <= {x for x, _ in alive_instances(
+            p.bus, p.cfg.episode.vehicle)}, timeout, "services ready")
+
+
+def wait_for_line(proc: Proc, text: str, timeout: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout
+    while text not in proc.tail(100_000):
+        assert time.monotonic() < deadline and proc.p.poll() is None, proc.tail()
+        time.sleep(0.05)
+
+
+@contextlib.contextmanager
+def two_sites(overrides: list[str], tmp: Path) -> Iterator[Sites]:
+    """Site A (plant, sensor) and site B (mapper, planner), each in its own network
+    namespace with its own router started from deploy/sites/site-*.json5; the routers
+    linked over a veth pair between the two namespaces. Every link is mutual TLS with
+    certificates made here, and both routers enforce the generated rules. The observer
+    (a recorder's certificate) is a client of site A's router from this namespace; site B's
+    router is reachable from here too (`Sites.b.ip`), for the attacks."""
+    tag = f"{os.getpid() % 10000}"
+    with Namespace(f"{tag}a", 94) as a, Namespace(f"{tag}b", 95) as b:
+        wan_a, _ = a.wire(b, 96)
+        certs = tmp / "certs"
+        make_certs(certs, hosts=("localhost", "127.0.0.1", wan_a, a.ip, b.ip))
+        sec = ["--set", f"bus.certs={json.dumps(str(certs))}"]
+        here = f"tls/{a.ip}:7447"
+        with Pipeline(overrides, tmp, listen=[SITE_ENDPOINT, here, f"tls/{wan_a}:7447"],
+                      endpoint=here, router_prefix=a.prefix,
+                      router_args=["--config", str(SITES / "site-a.json5"), *sec],
+                      observer=BusConfig("client", (here,), (), False, str(certs),
+                                         "recorder")) as p:
+            rb = Proc([PY, "-m", "deploy.cli", "router", "--config",
+                       str(SITES / "site-b.json5"), *sec, "--listen", SITE_ENDPOINT,
+                       "--listen", f"tls/{b.ip}:7447", "--connect", f"tls/{wan_a}:7447"],
+                      tmp / "router-b.log", prefix=b.prefix)
+            try:
+                wait_for_line(rb, "router listening")
+                yield Sites(p, a, b, certs, rb, wan_a)
+            finally:
+                p.close()
+                rb.stop()
 
 
 class Delay:

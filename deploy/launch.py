@@ -49,7 +49,9 @@ from common.bus import (
 from common.config import BusConfig, Config
 from common.messages import DecodeError, Event, Heartbeat, decode
 from common.process import PARENT_ENV
+from common.security import default_certs
 from common.supervision import FAILED, RETIRED_EXIT
+from deploy.certs import ensure_certs
 from services.plant.protocol import OUTCOMES
 
 log = logging.getLogger(__name__)
@@ -204,6 +206,14 @@ class Supervisor:
                 self._beats[label] = (hb.status, max(hb.deadline_s, self.min_deadline_s),
                                       time.monotonic())
 
+    def owns(self, header: Any) -> bool:
+        """Whether a message's header names a process this supervisor started: its source
+        one of its children's, its boot no earlier than that child's (re)start."""
+        service, _, instance = header.source.partition("/")
+        with self._lock:
+            started = self._started.get(self.label(service, instance))
+        return started is not None and header.boot >= started[1]
+
     def view(self, label: str) -> ChildView:
         with self._lock:
             status, deadline, at = self._beats.get(label, ("", 0.0, None))
@@ -262,20 +272,27 @@ def services_up(cfg: Config, overrides: list[str], config_path: str | None = Non
                 subscriptions: dict[str, Callable[[Any], None]] | None = None,
                 on_session: Callable[[Any], Callable[[], None]] | None = None,
                 restarts: int = 0, env: dict[str, str] | None = None,
-                args: dict[str, list[str]] | None = None
+                args: dict[str, list[str]] | None = None, secure: bool = True
                 ) -> Iterator[tuple[Any, str, Supervisor]]:
     """Router + the named services, ready (every token up). Yields (session, endpoint,
     supervisor); `restarts` per service are allowed before a failure is final; `args`:
     extra command-line arguments per service.
+
+    `secure` (the default): mutual TLS on loopback and the generated access-control rules,
+    with bus.certs or the certificates made on first use in `default_certs()`; otherwise
+    plain TCP (unless bus.certs is set).
 
     `subscriptions` (key -> callback) are declared on the router's session before
     any service starts, so nothing the services publish is missed; so is
     `on_session(session)` (a recorder), whose returned finaliser runs after every
     service has stopped.
     """
+    certs = cfg.bus.certs or (str(ensure_certs(default_certs())) if secure else "")
+    if certs != cfg.bus.certs:
+        overrides = [*overrides, f"bus.certs={json.dumps(certs)}"]
     port = free_port()
-    endpoint = client_endpoint(port, cfg.bus.certs)
-    with open_session(router_config(port, cfg.bus.certs)) as session:
+    endpoint = client_endpoint(port, certs)
+    with open_session(router_config(port, certs)) as session:
         for key, callback in (subscriptions or {}).items():
             session.declare_subscriber(key, callback)
         finish = on_session(session) if on_session is not None else None
@@ -332,9 +349,11 @@ def recording_hook(cfg: Config, path: str, summary: dict[str, Any]
 
 
 def up(cfg: Config, overrides: list[str], config_path: str | None = None,
-       timeout_s: float = 900.0, record: str | None = None) -> dict[str, Any]:
-    """Run one episode across processes (recorded to `record` if given), supervised;
-    returns the summary record."""
+       timeout_s: float = 900.0, record: str | None = None, secure: bool = True
+       ) -> dict[str, Any]:
+    """Run one episode across processes (recorded to `record` if given), supervised,
+    secured unless not `secure` (`services_up`); returns the summary record. The
+    outcome is taken only from the plant this launcher started (`Supervisor.owns`)."""
     summary: dict[str, Any] = {
         "scenario": cfg.episode.scenario, "controller": cfg.planner.controller,
         "samples": cfg.planner.samples, "seed": cfg.episode.seed, "outcome": "error",
@@ -346,7 +365,7 @@ def up(cfg: Config, overrides: list[str], config_path: str | None = None,
         with services_up(cfg, overrides, config_path, subscriptions={
                 events.key: lambda s: events.on_payload(s.payload.to_bytes())},
                 on_session=recording_hook(cfg, record, summary) if record else None,
-                restarts=cfg.supervision.restarts) as (session, endpoint, sup):
+                restarts=cfg.supervision.restarts, secure=secure) as (session, endpoint, sup):
             log.info("all services up after %.1f s, router on %s (vamppi swap --connect %s)",
                      time.monotonic() - wall0, endpoint, endpoint)
             bus = ZenohTransport(session)
@@ -364,6 +383,11 @@ def up(cfg: Config, overrides: list[str], config_path: str | None = None,
             ended_at = None
             while time.monotonic() < deadline:
                 ev = events.get(timeout=0.1)
+                if ev is not None and not sup.owns(ev.header):
+                    summary["foreign_events"] = summary.get("foreign_events", 0) + 1
+                    log.warning("vamppi up: an event not from its plant ignored: %s from %s",
+                                ev.kind, ev.header.source)
+                    ev = None
                 if ev is not None and ev.kind == "start":
                     start_wall = time.monotonic()
                 if ev is not None and ev.kind in OUTCOMES:

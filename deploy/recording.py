@@ -46,6 +46,7 @@ from common.messages import MESSAGE_TYPES, DecodeError, json_schema, peek
 from common.protocol import SeqTrack
 
 log = logging.getLogger(__name__)
+CLOCK_METADATA = "vamppi.clock"      # the publishers' clock offsets (Recorder)
 
 PROFILE = "vamppi"
 MESSAGE_ENCODING = "msgpack"
@@ -184,6 +185,11 @@ class RecordingWriter:
                 "duplicates": sum(p.duplicates for p in self.publishers.values()),
                 "publishers": pubs}
 
+    def note(self, name: str, values: dict[str, Any]) -> None:
+        """A metadata record now, among the messages (a crash keeps it); values as JSON.
+        Of several with one name, readers keep the last."""
+        self._w.add_metadata(name, {k: json.dumps(v) for k, v in values.items()})
+
     def close(self, extra: dict[str, Any] | None = None) -> dict[str, Any]:
         """Write the statistics metadata, the summary section and close the file."""
         if self.closed:
@@ -212,9 +218,15 @@ class Recorder:
     """
 
     RECOVERY_WAIT_S = 2.0          # a recovered sample the live stream may still bring
+    CLOCK_SYNC_S = 2.0             # between measurements of the publishers' clocks
 
     def __init__(self, bus: Any, keys: str, path: str | Path,
-                 meta: dict[str, dict[str, str]], flush_interval_s: float = FLUSH_INTERVAL_S):
+                 meta: dict[str, dict[str, str]], flush_interval_s: float = FLUSH_INTERVAL_S,
+                 clock_sync_s: float | None = CLOCK_SYNC_S):
+        """`clock_sync_s`: how often the live services' clock offsets are measured
+        (`common.bus.measure_clocks`) and noted in the recording (metadata
+        `vamppi.clock`, the tightest so far), for `vamppi timing` across hosts; None: never
+        (and for keys that are not one vehicle's)."""
         self.keys, self.path = keys, Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._writer = RecordingWriter(self.path, meta, flush_interval_s)
@@ -228,6 +240,13 @@ class Recorder:
         self.missed: collections.Counter[str] = collections.Counter()
         self._thread = threading.Thread(target=self._run, name="recorder", daemon=True)
         self._thread.start()
+        self.clocks: dict[str, Any] = {}
+        self._clocks_changed = False
+        parts = keys.split("/")
+        if clock_sync_s is not None and len(parts) == 3 and parts[2] == "**" and "*" not in \
+                parts[1]:
+            threading.Thread(target=self._sync_clocks, args=(bus, parts[1], clock_sync_s),
+                             name="recorder-clocks", daemon=True).start()
         self._subs = [bus.subscriber(keys, lambda k, p: self._on_sample(k, p, False))]
         prefix = keys[:-3] if keys.endswith("/**") else None
         for topic, owner in CACHED.items():
@@ -244,6 +263,21 @@ class Recorder:
             self.received += not recovery
             self.max_backlog = max(self.max_backlog, len(self._queue))
             self._cv.notify()
+
+    def _sync_clocks(self, bus: Any, vehicle: str, every_s: float) -> None:
+        from common.bus import measure_clocks
+        while not self._stop:
+            try:
+                clocks = measure_clocks(bus, vehicle, known=self.clocks)
+            except Exception as exc:          # a closing session: the next round, or none
+                log.debug("clock sync: %s", exc)
+                clocks = self.clocks
+            with self._cv:
+                if clocks != self.clocks:
+                    self.clocks, self._clocks_changed = clocks, True
+            deadline = time.monotonic() + every_s
+            while not self._stop and time.monotonic() < deadline:
+                time.sleep(0.1)
 
     def _recovered(self, key: str, payload: bytes, t: int, since: float, final: bool) -> bool:
         """Write a sample of the recovering subscription if the live one missed it; False
@@ -270,6 +304,12 @@ class Recorder:
                 batch = list(self._queue)
                 self._queue.clear()
                 stop = self._stop
+                clocks = self.clocks if self._clocks_changed else None
+                self._clocks_changed = False
+            if clocks is not None:
+                self._writer.note(CLOCK_METADATA, {s: {"offset_s": round(c.offset_s, 6),
+                                                       "rtt_s": round(c.rtt_s, 6)}
+                                                   for s, c in clocks.items()})
             now = time.monotonic()
             for key, payload, t, recovery in batch:
                 if recovery:
@@ -306,6 +346,21 @@ class Recorder:
 
 
 # ----------------------------------------------------------------------------- reading
+
+
+def recorded_clocks(path: str | Path) -> dict[str, float]:
+    """The publishers' clock offsets a recorder noted ("service/instance" -> seconds its
+    clock was ahead of the recorder's), those larger than their measurement's uncertainty
+    (half its round trip; a smaller one is indistinguishable from none, the same host's
+    clock); {} if it noted none."""
+    out = {}
+    for source, v in read_metadata(path).get(CLOCK_METADATA, {}).items():
+        m = json.loads(v)
+        if abs(float(m["offset_s"])) > float(m["rtt_s"]) / 2:
+            out[source] = float(m["offset_s"])
+    return out
+
+
 class RecordingError(ValueError):
     """A file that is not a readable MCAP recording at all."""
 

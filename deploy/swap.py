@@ -161,6 +161,8 @@ def swap(cfg: Config, instance: str | None, overrides: list[str], config_path: s
             args = candidate_args(shadow_s, keep_old)
             own = as_overrides(running_config(bus, vehicle, old, config_path, own),
                                skip=("bus",))
+            own += [f"bus.{k}={json.dumps(v)}" for k, v in             # the operator's trust
+                    (("certs", cfg.bus.certs), ("credentials", cfg.bus.credentials)) if v]
             proc, log = None, None
             if launched:
                 session.put(launcher_key(vehicle), json.dumps(

@@ -6,6 +6,13 @@ headers: a command's header names the map it was planned on, the map's the
 depth frame it fused; the plant's state names the command it applies. Depth
 capture to command applied = the first state applying a command (its publish
 wall time) minus the publish wall time of the depth frame at the chain's root.
+
+Across hosts those wall times come from different clocks. The recorder measures each
+publisher's offset from its own clock, NTP-style over the bus (a round trip to the
+service's clock queryable, the tightest of several: `common.bus.measure_clocks`), and
+notes it in the recording; every wall time is put on the recorder's clock before it is
+subtracted, so a latency is true within half the round trip of the clocks' measurement
+(tens of microseconds on one host, about a link's latency across hosts).
 """
 
 from __future__ import annotations
@@ -20,7 +27,7 @@ import numpy as np
 from common.bus import topic_key
 from common.messages import DecodeError, decode, peek
 from common.protocol import SeqTrack
-from deploy.recording import iter_messages, read_metadata
+from deploy.recording import iter_messages, read_metadata, recorded_clocks
 
 
 def stats_ms(times: list[float]) -> dict[str, float]:
@@ -38,8 +45,10 @@ class ChainLog:
     `cmd` (a swap, a standby, a rogue), and a state's inputs name the command it applied
     of the authority it names."""
 
-    def __init__(self, vehicle: str):
+    def __init__(self, vehicle: str, clocks: dict[str, float] | None = None):
+        """`clocks`: each publisher's offset ("service/instance" -> s ahead of ours)."""
         self.keys = {t: topic_key(vehicle, t) for t in ("depth", "map", "cmd", "state")}
+        self.clocks = clocks or {}
         self.lock = threading.Lock()
         Ref = tuple[int, float]                           # (seq, stamp)
         self.depth: dict[Ref, float] = {}                 # -> publish wall time
@@ -63,7 +72,8 @@ class ChainLog:
         try:
             m = msgpack.unpackb(payload, raw=False)
             h = m["header"]
-            wall, me = float(h["wall_time"]), (int(h["seq"]), round(float(h["stamp"]), 6))
+            wall = float(h["wall_time"]) - self.clocks.get(str(h.get("source", "")), 0.0)
+            me = (int(h["seq"]), round(float(h["stamp"]), 6))
         except Exception:          # malformed traffic is the codec tests' business
             return
         with self.lock:
@@ -132,7 +142,8 @@ def analyse(path: str | Path) -> dict[str, Any]:
     applied chain; the planner's solve times. One pass over the recording."""
     meta = read_metadata(path).get("vamppi", {})
     vehicle = meta.get("vehicle") or "ego"
-    chain = ChainLog(vehicle)
+    clocks = recorded_clocks(path)
+    chain = ChainLog(vehicle, clocks)
     chain_topics = {key: topic for topic, key in chain.keys.items()}
     per: dict[str, dict[str, Any]] = {}
     solve_ms: list[float] = []
@@ -147,7 +158,8 @@ def analyse(path: str | Path) -> dict[str, Any]:
         except DecodeError:
             undecodable += 1
             continue
-        k["latency"].append((m.log_time_ns - int(header.wall_time * 1e9)) / 1e9)
+        wall = header.wall_time - clocks.get(header.source, 0.0)    # on the recorder's clock
+        k["latency"].append(m.log_time_ns / 1e9 - wall)
         k["seqs"].setdefault((header.source, header.boot), SeqTrack()).see(header.seq)
         if m.key in chain_topics:
             chain.on(chain_topics[m.key], m.data)
@@ -172,7 +184,8 @@ def analyse(path: str | Path) -> dict[str, Any]:
     out: dict[str, Any] = {"recording": str(path), "vehicle": vehicle,
                            "clock": meta.get("clock", ""), "scenario": meta.get("scenario", ""),
                            "git_commit": meta.get("git_commit", ""),
-                           "undecodable": undecodable, "topics": topics,
+                           "undecodable": undecodable, "clock_offsets_s": clocks,
+                           "topics": topics,
                            "chain": chain.summary()}
     if solve_ms:
         out["solve_ms"] = {**_ms([s / 1e3 for s in solve_ms]), "count": len(solve_ms)}
@@ -199,6 +212,10 @@ def table(result: dict[str, Any]) -> str:
                      f"{f(p.get('p50_ms'))} | {f(p.get('std_ms'))} | {r['bytes_mean']:.0f} | "
                      f"{r['bytes_max']} | {r['seq_missing']} | {f(t.get('p50_ms'))} | "
                      f"{f(t.get('p95_ms'))} | {f(t.get('p99_ms'))} |")
+    clocks = result.get("clock_offsets_s") or {}
+    lines += ["", "publishers' clocks, ms ahead of the recorder's (corrected for): " + (
+        ", ".join(f"{src} {1e3 * off:+.3f}" for src, off in sorted(clocks.items()))
+        or "none measurably apart")]
     c = result["chain"]
     lines += ["", f"chains depth -> map -> cmd -> applied: {c['chains']} "
               f"(commands {c['commands']}, states {c['states']}, "

@@ -1,5 +1,6 @@
 """Shared fixtures: fresh random seeds (printed on failure), a VA-MPPI planning problem and a
-Zenoh router on loopback."""
+Zenoh router on loopback. The run has its own JAX compilation cache and its own
+configuration home (the certificates `vamppi up` makes on first use), never the user's."""
 
 from __future__ import annotations
 
@@ -15,12 +16,15 @@ from common.bus import open_session
 from deploy.launch import free_port, router_config
 
 _own_cache: str | None = None
+_own_home: str | None = None
 
 
 def pytest_configure(config):
     """One JAX compilation cache for the whole run, shared with the services the
     tests start (docs/running.md): a fresh directory unless VAMPPI_JAX_CACHE is set."""
-    global _own_cache
+    global _own_cache, _own_home
+    _own_home = tempfile.mkdtemp(prefix="vamppi-config-home-")
+    os.environ["XDG_CONFIG_HOME"] = _own_home
     if compile_cache.ENV not in os.environ:
         _own_cache = tempfile.mkdtemp(prefix="vamppi-jax-cache-")
         os.environ[compile_cache.ENV] = _own_cache
@@ -28,8 +32,9 @@ def pytest_configure(config):
 
 
 def pytest_unconfigure(config):
-    if _own_cache is not None:
-        shutil.rmtree(_own_cache, ignore_errors=True)
+    for d in (_own_cache, _own_home):
+        if d is not None:
+            shutil.rmtree(d, ignore_errors=True)
 
 
 @pytest.fixture

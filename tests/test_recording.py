@@ -312,3 +312,49 @@ def test_timing_of_a_realtime_recording_agrees_with_the_live_pipeline_bench(tmp_
     text = table(res)
     assert "end_to_end" in text and "plant/state" in text
     assert res["solve_ms"]["count"] == case["commands"]
+
+
+# ----------------------------------------------------------------------------- clocks
+def test_a_clock_offset_is_true_within_half_the_round_trip(rng):
+    """NTP's estimate against the float64 truth: another clock `d` ahead, one-way delays
+    `a` out and `b` back; the estimate is off by exactly (a - b) / 2, never more than half
+    the round trip."""
+    from common.bus import ClockOffset
+    for _ in range(200):
+        t, d = rng.uniform(1e9, 2e9), rng.normal(0, 30)
+        a, b = rng.exponential(0.01, 2)
+        m = ClockOffset.from_round_trip(t, t + a + d, t + a + b)
+        assert abs(m.offset_s - (d + (a - b) / 2)) < 1e-6          # 2e9 s in float64
+        assert abs(m.offset_s - d) <= m.rtt_s / 2 + 1e-6
+        assert m.best(ClockOffset(0.0, m.rtt_s * 2)) is m
+
+
+def test_recorder_measures_clocks_and_timing_corrects_for_them(tmp_path):
+    """A publisher whose clock runs 5 s ahead: the recorder measures its offset over the
+    bus (a clock queryable on a MemoryBus) and notes it; `vamppi timing` puts its wall
+    times on the recorder's clock, so the transport latency is its true few milliseconds,
+    not -5 s."""
+    from common.bus import MemoryBus, MemoryTransport, admin_key, alive_key
+    from deploy.recording import Recorder, recorded_clocks
+    bus, ahead = MemoryBus(), 5.0
+    svc = MemoryTransport(bus)
+    svc.token(alive_key("v0", "plant", "0"))
+    svc.queryable(admin_key("v0", "plant", "0", "clock"), lambda k: [
+        (k, json.dumps({"wall_time": time.time() + ahead}).encode())])
+    path = tmp_path / "clocks.mcap"
+    rec = Recorder(MemoryTransport(bus), "vamppi/v0/**", path,
+                   recording_metadata(load_config(overrides=SHORT).to_dict(), "vamppi/v0/**"),
+                   clock_sync_s=0.2)
+    pub = MemoryTransport(bus).publisher(topic_key("v0", "state"))
+    for i in range(50):
+        s = state(i)
+        s = dataclasses.replace(s, header=dataclasses.replace(
+            s.header, wall_time=time.time() + ahead - 0.003))         # sent 3 ms before
+        pub.put(encode(s))
+        time.sleep(0.01)
+    rec.stop()
+    clocks = recorded_clocks(path)
+    assert list(clocks) == ["plant/0"] and abs(clocks["plant/0"] - ahead) < 1e-3
+    row = next(t for t in analyse(path)["topics"] if t["key"] == topic_key("v0", "state"))
+    assert 2.0 < row["transport"]["p50_ms"] < 5.0, row["transport"]
+    assert "plant/0 +4999.99" in table(analyse(path)) or "plant/0 +5000.00" in table(analyse(path))

@@ -35,12 +35,19 @@ def test_manifests_are_the_topic_table():
 
 
 def test_generated_rules_deny_by_default_and_name_each_role():
-    acl = access_control(V, usernames={"planner": "p1"})
+    acl = access_control(V, users=("planner", "planner-2", "viewer"))
     assert acl["enabled"] and acl["default_permission"] == "deny"
-    assert {s["id"] for s in acl["subjects"]} == set(ROLES)
-    assert next(s for s in acl["subjects"] if s["id"] == "planner")["usernames"] == ["p1"]
+    subjects = {s["id"]: s for s in acl["subjects"]}
+    assert set(subjects) == {*ROLES, "planner-users", "viewer-users"}
+    assert subjects["planner-users"] == {"id": "planner-users",
+                                         "usernames": ["planner", "planner-2"]}
+    assert all(list(s) == ["id", "cert_common_names"] for r, s in subjects.items()
+               if r in ROLES)               # zenoh: a subject matches only if all of it does
     ids = {r["id"] for r in acl["rules"]}
-    assert all(set(p["rules"]) <= ids and p["subjects"] == [p["id"]] for p in acl["policies"])
+    policies = {p["id"]: p for p in acl["policies"]}
+    assert all(set(p["rules"]) <= ids for p in policies.values())
+    assert policies["planner"]["subjects"] == ["planner", "planner-users"]
+    assert policies["plant"]["subjects"] == ["plant"]
     viewer = [r for r in acl["rules"] if r["id"].startswith("viewer-")]
     assert viewer and not any("put" in r["messages"] and r["flows"] == ["ingress"]
                               for r in viewer)
@@ -158,3 +165,46 @@ def test_vamppi_up_over_mutual_tls_is_bit_identical_and_denies_a_wrong_role(tmp_
     from deploy.recording import iter_messages
     assert not [m.key for m in iter_messages(path) if m.data == b"forged"]
     assert recorded_trajectory(path).tobytes() == ref.tobytes()
+
+
+def test_user_password_instead_of_tls(tmp_path):
+    """bus.credentials: a router with the users' dictionary and the generated rules; the
+    planner's command reaches the recorder, the viewer's command and state do not; a wrong
+    password and an unknown user are refused at connect."""
+    from common.bus import open_session
+    from common.config import BusConfig
+    users = tmp_path / "users"
+    users.write_text("# role[-instance]:password\nrouter:r0\nplanner:p0\nviewer:v0\n"
+                     "recorder:c0\n")
+    wrong, unknown = tmp_path / "wrong", tmp_path / "unknown"
+    wrong.write_text("planner:nope\n")
+    unknown.write_text("planner-3:p0\n")
+    ep = f"tcp/127.0.0.1:{free_port()}"
+
+    def client(name, cred=users):
+        return open_session(BusConfig("client", (ep,), (), False, credentials=str(cred),
+                                      identity=name))
+    router = open_session(BusConfig("router", (), (ep,), False, credentials=str(users),
+                                    identity="router"))
+    got = []
+    rec = client("recorder")
+    rec.declare_subscriber(f"vamppi/{V}/**", lambda s: got.append(
+        (str(s.key_expr), s.payload.to_bytes())))
+    planner, viewer = client("planner"), client("viewer")
+    time.sleep(0.5)
+    planner.put(topic_key(V, "cmd"), b"planner")
+    viewer.put(topic_key(V, "cmd"), b"viewer")
+    viewer.put(topic_key(V, "state"), b"viewer")
+    time.sleep(0.5)
+    assert got == [(topic_key(V, "cmd"), b"planner")]
+    for name, cred in (("planner", wrong), ("planner-3", unknown)):
+        with pytest.raises(zenoh.ZError):
+            client(name, cred)
+    with pytest.raises(ValueError, match="no line for 'operator'"):
+        client("operator")
+    bad = tmp_path / "bad"
+    bad.write_text("rogue:x\n")
+    with pytest.raises(ValueError, match="not `role"):
+        client("rogue", bad)
+    for s in (viewer, planner, rec, router):
+        s.close()

@@ -1,0 +1,106 @@
+"""Two sites in network namespaces (deploy.faults.two_sites): plant and sensor in one,
+mapper and planner in the other, a router each from deploy/sites, every link mutual TLS
+and both routers enforcing the generated access-control rules; and the attacks on it."""
+
+import collections
+import os
+import shutil
+import time
+
+import pytest
+import zenoh
+
+from common.bus import alive_key, topic_key
+from common.config import load_config
+from common.messages import DecodeError, peek
+from deploy.faults import Flood, Rogue, rejections, two_sites
+from deploy.recording import iter_messages
+from deploy.runner import run_episode
+from deploy.timing import analyse
+
+pytestmark = [
+    pytest.mark.integration,
+    pytest.mark.skipif(os.geteuid() != 0 or shutil.which("ip") is None
+                       or shutil.which("openssl") is None,
+                       reason="network namespaces need root, ip and openssl"),
+]
+
+SHORT = ["planner.samples=64", "episode.timeout_s=3.0", 'episode.scenario="open-field"']
+RT = ["planner.samples=64", 'episode.scenario="open-field"', 'episode.clock="realtime"',
+      "episode.timeout_s=40"]
+
+
+def test_lockstep_across_two_secured_sites_is_bit_identical_under_attack(tmp_path):
+    """Lockstep across the two sites is the in-process episode bit for bit, while: a client
+    without a certificate is refused at connect; a client with a viewer's certificate (the
+    wrong role) at site B replays every topic's hostile messages (deploy.faults.hostile)
+    and raises a planner's liveliness token, all denied by its router; and a client with a
+    planner's certificate sends the same forged commands, under the real planner's source
+    id among them, which its router lets through and the plant rejects, each counted."""
+    ref = run_episode(load_config(overrides=SHORT)).trajectory
+    with two_sites(SHORT, tmp_path) as s:
+        p, v = s.pipeline, s.pipeline.cfg.episode.vehicle
+        b_here = f"tls/{s.b.ip}:7447"
+        bare = zenoh.Config()
+        bare.insert_json5("mode", '"client"')
+        bare.insert_json5("connect/endpoints", f'["{b_here}"]')
+        bare.insert_json5("transport/link/tls", '{"root_ca_certificate": "%s"}'
+                          % (s.certs / "ca.pem"))
+        with pytest.raises(zenoh.ZError):
+            zenoh.open(bare)
+        viewer = Rogue(b_here, v, at=10, bus=s.secured("viewer", b_here))
+        token = viewer.session.liveliness().declare_token(alive_key(v, "planner", "9"))
+        forger = Rogue(b_here, v, at=20, bus=s.secured("planner", b_here))
+        s.up()
+        assert p.wait_outcome().kind == "timeout"
+        time.sleep(0.5)
+        sent = {"viewer": list(viewer.sent), "planner": list(forger.sent)}
+        token.undeclare()
+        for r in (viewer, forger):
+            r.close()
+        got = p.trajectory()
+        plant_log = p.procs["plant"].tail(500_000)
+        logs = {n: q.tail(200_000) for n, q in p.procs.items()}
+    assert got.tobytes() == ref.tobytes()
+    # every hostile message was sent (a planner receives no depth to forge); the viewer's
+    # reached nobody, the planner's only on cmd
+    assert {t for t, _ in sent["viewer"]} == {"state", "depth", "map", "cmd"}
+    assert {t for t, _ in sent["planner"]} == {"state", "map", "cmd"}
+    publishers = collections.defaultdict(set)          # what the observer received
+    for m in iter_messages(p.path):
+        try:
+            _, h = peek(m.data)
+        except DecodeError:
+            publishers[m.key.rsplit("/", 1)[1]].add("undecodable")
+            continue
+        publishers[m.key.rsplit("/", 1)[1]].add((h.source, h.boot))
+    for topic in ("state", "depth", "map"):
+        assert len(publishers[topic]) == 1, publishers[topic]     # the real one alone
+    assert len(publishers["cmd"]) > 2                  # the forger's newer boot, rogue/0
+    rej = collections.Counter(r for text in logs.values() for r in rejections(text))
+    assert {t for t, _ in rej} == {"cmd"}, rej         # only the planner's cmd got through
+    cmd_why = {w for t, w in rejections(plant_log) if t == "cmd"}
+    assert {"duplicate", "stale", "future", "not the authority"} <= cmd_why, cmd_why
+    assert alive_key(v, "planner", "9") not in plant_log
+
+
+def test_realtime_across_two_secured_sites_holds_10_hz_under_a_denied_flood(tmp_path):
+    """Realtime across the two sites: the planner's commands reach the plant at 10 Hz and
+    the vehicle reaches the goal, while a client with a viewer's certificate floods `cmd`
+    with copies of the real commands from site B; its router denies every one, so none
+    reaches the observer and the plant never brakes for want of a command."""
+    with two_sites(RT, tmp_path) as s:
+        p, v = s.pipeline, s.pipeline.cfg.episode.vehicle
+        s.up()
+        flood = Flood(s.secured("viewer", f"tls/{s.b.ip}:7447"), v)
+        ev = p.wait_outcome(180)
+        sent = flood.close()
+        p.close()
+    assert ev.kind == "success", p.kinds()
+    result = analyse(p.path)
+    chain = result["chain"]
+    cmd = next(t for t in result["topics"] if t["key"] == topic_key(v, "cmd"))
+    assert sent > 10 * cmd["messages"]               # a flood: tens of times the rate
+    assert cmd["publishers"] == 1                       # none of it reached the observer
+    assert 9.0 < chain["command_rate_hz"] < 11.0, chain
+    assert chain["stale_states"] <= 5, chain            # the first command's wait alone
