@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint clean
+.PHONY: demo test lint certs clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV) || python3 -m venv $(VENV)
@@ -19,6 +19,9 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/ruff check common services deploy tests
 	$(BIN)/python -m pytest -q tests
+
+certs: $(STAMP)  # the CA and a certificate per role where vamppi looks (docs/security.md)
+	$(BIN)/vamppi certs $${XDG_CONFIG_HOME:-$$HOME/.config}/vamppi/certs
 
 lint: $(STAMP)
 	$(BIN)/ruff check common services deploy tests

@@ -164,9 +164,11 @@ def zenoh_config(cfg: BusConfig, wait: bool = False):
             raise ValueError(f"{cfg.credentials} has no line for {name!r}")
         zc.insert_json5("transport/auth/usrpwd", json.dumps(auth))
     if router and (cfg.certs or cfg.credentials):
-        from common.security import access_control
+        from common.security import accepted_names, access_control
         # every vehicle's keys (the rules' vehicle chunk a wildcard)
-        zc.insert_json5("access_control", json.dumps(access_control("*", users=users)))
+        names = accepted_names(cfg.certs) if cfg.certs else ()
+        zc.insert_json5("access_control", json.dumps(access_control("*", users=users,
+                                                                    names=names)))
     if wait and cfg.mode == "client":
         zc.insert_json5("connect/timeout_ms", "-1")
         zc.insert_json5("connect/exit_on_failure", "false")

@@ -3,14 +3,16 @@ from it, and the mutual-TLS settings of a role's session.
 
 One place: the manifests are derived from the topic table in `common.bus` (TOPICS names
 what each service publishes, INPUTS what it reads) and its key builders, never restated.
-A role is a certificate's common name (or a username): the four services, and the tools.
+A certificate's common name (or a username) is a role or `role-instance`; the roles are
+the four services, the tools and a router.
 
 - `manifest(role, vehicle)`: the keys the role puts, subscribes to, queries, answers
   queries on (queryables), and declares liveliness tokens on.
-- `access_control(vehicle, roles, users)`: zenoh's `access_control` block, deny by
-  default: one rule per (role, kind of message), a subject per role's certificate common
-  name and one for its users, one policy joining them. A router enforces it on every
-  client's messages, both ways: what a client sends (ingress) and what reaches it (egress).
+- `access_control(vehicle, roles, users, names)`: zenoh's `access_control` block, deny
+  by default: one rule per (role, kind of message), a subject of the role's certificate
+  common names (`accepted_names`: issued, not revoked) and one of its users, one policy
+  joining them. A router enforces it on every client's messages, both ways: what a
+  client sends (ingress) and what reaches it (egress).
 - `tls(certs, role, listen)`: the `transport/link/tls` block of a session (mTLS).
 - `read_credentials(path)`: user/password authentication instead, where TLS is not wanted
   (the users are roles; the router's dictionary and each client's own line).
@@ -52,6 +54,7 @@ class Manifest:
     subscribe: tuple[str, ...] = ()
     query: tuple[str, ...] = ()
     queryable: tuple[str, ...] = ()
+    hears: tuple[str, ...] = ()                # the queries routed to its queryables
     token: tuple[str, ...] = ()
     watch_tokens: tuple[str, ...] = ()        # liveliness subscribers and queries
 
@@ -80,12 +83,16 @@ def manifest(role: str, vehicle: str) -> Manifest:
             subscribe=(*ins, heartbeat_key(vehicle), *_adv(ins)),
             query=(admin_all, *_adv(ins)),
             queryable=(admin_key(vehicle, role, "*", "**"), *_adv(mine_cached)),
+            # a query names what it asks for with wildcards (`admin/*/*/latest/cmd`: any
+            # instance holding one), which zenoh lets out only under a key that includes
+            # it; the queryable answers its own keys alone (its replies are checked)
+            hears=(admin_all, *_adv(mine_cached)),
             token=(alive_key(vehicle, role, "*"), *_adv(mine_cached)),
             watch_tokens=(alive_key(vehicle), *_adv(ins)))
     if role == "router":                # all of it, both ways, and zenoh-ext's keys
         every = (everything, *_adv(cached))
         return Manifest(role, put=every, subscribe=every, query=every, queryable=every,
-                        token=every, watch_tokens=every)
+                        hears=every, token=every, watch_tokens=every)
     if role == "operator":              # vamppi swap: a handover, a launcher request
         return Manifest(role, put=(topic_key(vehicle, "handover"), launcher_key(vehicle)),
                         subscribe=(everything,), query=(admin_all,),
@@ -101,7 +108,8 @@ _FLOWS = (
     ("put", ("put",), ()),
     ("subscribe", ("declare_subscriber",), ("put",)),
     ("query", ("query",), ("reply",)),
-    ("queryable", ("declare_queryable", "reply"), ("query",)),
+    ("queryable", ("declare_queryable", "reply"), ()),
+    ("hears", (), ("query",)),
     ("token", ("liveliness_token",), ()),
     ("watch_tokens", ("declare_liveliness_subscriber", "liveliness_query"),
      ("liveliness_token",)),
@@ -109,11 +117,14 @@ _FLOWS = (
 
 
 def access_control(vehicle: str, roles: tuple[str, ...] = ROLES,
-                   users: tuple[str, ...] = ()) -> dict[str, Any]:
+                   users: tuple[str, ...] = (), names: tuple[str, ...] = ROLES
+                   ) -> dict[str, Any]:
     """Zenoh's `access_control` block for a router serving `vehicle`: deny by default, each
-    role allowed exactly its manifest. A role's subjects are its certificate's common name
-    and, for user/password authentication, the `users` named `role` or `role-instance`
-    (zenoh matches a subject only if all its attributes do: hence one subject each)."""
+    role allowed exactly its manifest. A role's subjects are the certificate common names
+    `names` of it (`role` or `role-instance`: those issued and not revoked,
+    `accepted_names`) and, for user/password authentication, the `users` of it (zenoh
+    matches a subject only if all its attributes do: hence one subject each). A role with
+    neither has no policy: everything it would do is denied."""
     # A declared publisher sends only where it knows of a subscriber, a querier asks only
     # where it knows of a queryable: every client hears of those (their key expressions,
     # often wider than the keys it may use, such as a recorder's `vamppi/<vehicle>/**`)
@@ -122,8 +133,17 @@ def access_control(vehicle: str, roles: tuple[str, ...] = ROLES,
               "key_exprs": ["**", f"{PREFIX}/*/*/*/@adv/**"]}]
     subjects, policies = [], []
     for role in roles:
+        certs = [n for n in names if role_of(n) == role]
+        mine = [u for u in users if role_of(u) == role]
+        ids = [f"{role}-certs"] * bool(certs) + [f"{role}-users"] * bool(mine)
+        if not ids:                    # an empty list of names would match any client
+            continue
+        if certs:
+            subjects.append({"id": f"{role}-certs", "cert_common_names": certs})
+        if mine:
+            subjects.append({"id": f"{role}-users", "usernames": mine})
         m = manifest(role, vehicle)
-        ids = ["declarations"]
+        rule_ids = ["declarations"]
         for name, ingress, egress in _FLOWS:
             keys = list(getattr(m, name))
             if not keys:
@@ -133,15 +153,23 @@ def access_control(vehicle: str, roles: tuple[str, ...] = ROLES,
                     rid = f"{role}-{name}-{flow}"
                     rules.append({"id": rid, "permission": "allow", "flows": [flow],
                                   "messages": list(messages), "key_exprs": keys})
-                    ids.append(rid)
-        subjects.append({"id": role, "cert_common_names": [role]})
-        mine = [u for u in users if role_of(u) == role]
-        if mine:
-            subjects.append({"id": f"{role}-users", "usernames": mine})
-        policies.append({"id": role, "rules": ids,
-                         "subjects": [role, *([f"{role}-users"] if mine else [])]})
+                    rule_ids.append(rid)
+        policies.append({"id": role, "rules": rule_ids, "subjects": ids})
     return {"enabled": True, "default_permission": "deny", "rules": rules,
             "subjects": subjects, "policies": policies}
+
+
+REVOKED = "revoked.txt"          # in a certificates directory: one revoked name a line
+
+
+def accepted_names(certs: str | Path) -> tuple[str, ...]:
+    """The certificate names a router with the directory `certs` accepts: every `NAME.pem`
+    `vamppi certs` issued there (a role or `role-instance`; not the CA), less those
+    `vamppi certs --revoke` listed in `revoked.txt`."""
+    d = Path(certs).expanduser()
+    revoked = set((d / REVOKED).read_text().split()) if (d / REVOKED).exists() else set()
+    return tuple(sorted(p.stem for p in d.glob("*.pem") if p.stem != "ca"
+                        and role_of(p.stem) in ROLES and p.stem not in revoked))
 
 
 def role_of(name: str) -> str:

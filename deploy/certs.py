@@ -2,12 +2,16 @@
 instance), for mutual TLS between every client and router (common.security).
 
 Made with the `openssl` command line (nothing is downloaded): an EC P-256 CA, and for each
-certificate a key, a request and the CA's signature. The common name is the role, which
-the routers' access-control rules match; the organisational unit names the instance. Every
-certificate is valid for both ends of a link (serverAuth and clientAuth) and for the
-names in `hosts` (loopback by default; a router's address across machines). Keys are
-written 0600. To revoke a certificate, issue a new CA and certificates (zenoh checks no
-revocation list): docs/security.md.
+certificate a key, a request and the CA's signature. The common name is the certificate's
+name (a role, or `role-instance`), which the routers' access-control rules match; the
+organisational unit names the instance. Every certificate is valid for both ends of a
+link (serverAuth and clientAuth) and for the names in `hosts` (loopback by default; a
+router's address across machines). Keys are written 0600.
+
+`revoke(dir, name)`: zenoh checks no revocation list, so a router accepts only the names
+issued in its directory and not listed in `revoked.txt` (common.security.accepted_names);
+a revoked certificate still completes TLS, and every message it sends is denied once
+the routers are restarted with the list: docs/security.md.
 """
 
 from __future__ import annotations
@@ -18,7 +22,7 @@ import subprocess
 import tempfile
 from pathlib import Path
 
-from common.security import ROLES
+from common.security import REVOKED, ROLES, accepted_names, role_of
 
 DAYS = 365
 
@@ -52,10 +56,13 @@ def make_certs(out: str | Path, names: tuple[str, ...] = ROLES,
     sans = ",".join(f"IP:{h}" if h.replace(".", "").isdigit() or ":" in h else f"DNS:{h}"
                     for h in hosts)
     made = []
+    revoked = _revoked(d)
     for name in names:
         role, _, instance = name.partition("-")
         if role not in ROLES or not all(c.isalnum() or c in "_." for c in instance):
             raise CertError(f"{name!r}: a role ({', '.join(ROLES)}), optionally -instance")
+        if name in revoked:
+            raise CertError(f"{name!r} is revoked ({d / REVOKED}): issue another name")
         key, pem = d / f"{name}.key", d / f"{name}.pem"
         with tempfile.TemporaryDirectory() as tmp:
             csr, ext = Path(tmp) / "req.csr", Path(tmp) / "ext.cnf"
@@ -64,7 +71,7 @@ def make_certs(out: str | Path, names: tuple[str, ...] = ROLES,
                            "extendedKeyUsage=serverAuth,clientAuth\n")
             _run("req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes",
                  "-keyout", str(key), "-out", str(csr),
-                 "-subj", f"/CN={role}/OU={instance or '0'}")
+                 "-subj", f"/CN={name}/OU={instance or '0'}")
             os.chmod(key, 0o600)
             _run("x509", "-req", "-in", str(csr), "-CA", str(ca), "-CAkey", str(ca_key),
                  "-CAcreateserial", "-out", str(pem), "-days", str(days), "-extfile", str(ext))
@@ -77,7 +84,8 @@ def ensure_certs(out: str | Path) -> Path:
     on first use). Made in a directory beside it and renamed into place, so that two
     launchers starting at once never see half of it."""
     d = Path(out).expanduser()
-    if all((d / f"{n}.pem").exists() for n in ("ca", *ROLES)):
+    wanted = [n for n in ROLES if n not in _revoked(d)]
+    if all((d / f"{n}.pem").exists() for n in ("ca", *wanted)):
         return d
     d.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=".certs-", dir=d.parent))
@@ -89,6 +97,24 @@ def ensure_certs(out: str | Path) -> Path:
             raise CertError(f"{d} exists without a CA: remove it or name another "
                             "(bus.certs)") from None
         shutil.rmtree(tmp, ignore_errors=True)
-        make_certs(d, tuple(n for n in ROLES if not (d / f"{n}.pem").exists()))
+        make_certs(d, tuple(n for n in wanted if not (d / f"{n}.pem").exists()))
     return d
+
+
+def _revoked(d: Path) -> set[str]:
+    return set((d / REVOKED).read_text().split()) if (d / REVOKED).exists() else set()
+
+
+def revoke(out: str | Path, name: str) -> list[str]:
+    """List `name` in the directory's `revoked.txt` and delete its key and certificate; the
+    names its routers accept from then on (restart them to apply)."""
+    d = Path(out).expanduser()
+    if not (d / "ca.pem").exists() or role_of(name) not in ROLES:
+        raise CertError(f"{name!r}: not a certificate name of {d}")
+    if name not in _revoked(d):
+        with open(d / REVOKED, "a") as f:
+            f.write(name + "\n")
+    for ext in ("pem", "key"):
+        (d / f"{name}.{ext}").unlink(missing_ok=True)
+    return list(accepted_names(d))
 

@@ -130,10 +130,18 @@ def cmd_service(args: argparse.Namespace, cfg: Config) -> int:
 
 
 def cmd_certs(args: argparse.Namespace, cfg: Config) -> int:
-    """A local CA and certificates per role for mutual TLS (deploy/certs.py)."""
+    """A local CA and certificates per role for mutual TLS (deploy/certs.py); --revoke
+    lists names the routers must deny."""
     from common.security import ROLES
-    from deploy.certs import CertError, make_certs
+    from deploy.certs import CertError, make_certs, revoke
     try:
+        if args.revoke:
+            accepted = []
+            for name in args.revoke:
+                accepted = revoke(args.dir, name)
+            print(json.dumps({"revoked": args.revoke, "accepted": accepted,
+                              "apply": "restart every router that uses this directory"}))
+            return 0
         made = make_certs(args.dir, tuple(args.name or ROLES), tuple(args.host), args.days)
     except CertError as exc:
         print(f"vamppi certs: {exc}", file=sys.stderr)
@@ -544,6 +552,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--host", action="append", default=["localhost", "127.0.0.1"],
                    help="a name or address the certificates are valid for (repeatable)")
     p.add_argument("--days", type=int, default=365)
+    p.add_argument("--revoke", action="append", metavar="NAME",
+                   help="deny this certificate from now on: listed in DIR/revoked.txt, its "
+                        "files deleted; restart the routers (repeatable)")
     p.set_defaults(func=cmd_certs)
 
     p = sub.add_parser("swap", help="hot-swap the planner: a new instance takes over")

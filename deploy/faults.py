@@ -728,19 +728,6 @@ REALTIME = ["planner.samples=64", 'episode.scenario="open-field"', 'episode.cloc
             "episode.timeout_s=40"]
 
 
-def _recorded_trajectory(path: Path) -> np.ndarray:
-    boots = {decode(m.data, Event).header.boot for m in iter_messages(path)
-             if m.key.endswith("/plant/events")}
-    rows: dict[float, np.ndarray] = {}
-    for m in iter_messages(path):
-        if m.key.endswith("/plant/state"):
-            s = decode(m.data, State)
-            if s.header.boot in boots:
-                rows.setdefault(round(s.header.stamp, 6), np.concatenate([[s.header.stamp],
-                                                                          s.x]))
-    return np.array([rows[k] for k in sorted(rows)])
-
-
 def supervised(service: str, sig: int, tmp: Path, reference: np.ndarray) -> dict[str, Any]:
     """`vamppi up` in lockstep, `service` stopped or killed mid-episode: from the signal to
     the supervisor's verdict, and whether the episode was the undisturbed one."""
@@ -755,7 +742,7 @@ def supervised(service: str, sig: int, tmp: Path, reference: np.ndarray) -> dict
     os.kill(pid, sig)
     detected = up.wait_line('"restarting"', 60, after=t) - t
     summary = up.finish()
-    got = _recorded_trajectory(rec)
+    got = recorded_trajectory(rec)
     return {"case": "supervised", "clock": "lockstep", "service": service,
             "signal": signal.Signals(sig).name, "detected_s": round(detected, 3),
             "restarts": summary["restarts"], "outcome": summary["outcome"],

@@ -8,8 +8,8 @@ import time
 import pytest
 import zenoh
 
-from common.bus import INPUTS, TOPICS, alive_key, key_matches, topic_key
-from common.security import ROLES, access_control, manifest, tls
+from common.bus import INPUTS, TOPICS, alive_key, key_matches, latest_key, topic_key
+from common.security import ROLES, accepted_names, access_control, manifest, tls
 from deploy.certs import make_certs
 from deploy.launch import free_port
 
@@ -35,19 +35,24 @@ def test_manifests_are_the_topic_table():
 
 
 def test_generated_rules_deny_by_default_and_name_each_role():
-    acl = access_control(V, users=("planner", "planner-2", "viewer"))
+    names = tuple(r for r in ROLES if r != "sensor") + ("planner-7",)
+    acl = access_control(V, users=("planner", "planner-2", "viewer"), names=names)
     assert acl["enabled"] and acl["default_permission"] == "deny"
     subjects = {s["id"]: s for s in acl["subjects"]}
-    assert set(subjects) == {*ROLES, "planner-users", "viewer-users"}
+    assert set(subjects) == {f"{r}-certs" for r in ROLES if r != "sensor"} | {
+        "planner-users", "viewer-users"}
     assert subjects["planner-users"] == {"id": "planner-users",
                                          "usernames": ["planner", "planner-2"]}
+    assert subjects["planner-certs"]["cert_common_names"] == ["planner", "planner-7"]
     assert all(list(s) == ["id", "cert_common_names"] for r, s in subjects.items()
-               if r in ROLES)               # zenoh: a subject matches only if all of it does
+               if r.endswith("-certs"))     # zenoh: a subject matches only if all of it does
     ids = {r["id"] for r in acl["rules"]}
     policies = {p["id"]: p for p in acl["policies"]}
     assert all(set(p["rules"]) <= ids for p in policies.values())
-    assert policies["planner"]["subjects"] == ["planner", "planner-users"]
-    assert policies["plant"]["subjects"] == ["plant"]
+    assert policies["planner"]["subjects"] == ["planner-certs", "planner-users"]
+    assert policies["plant"]["subjects"] == ["plant-certs"]
+    assert "sensor" not in policies          # no name of it: no subject, denied everything
+    assert not any(r["id"].startswith("sensor-") for r in acl["rules"])
     viewer = [r for r in acl["rules"] if r["id"].startswith("viewer-")]
     assert viewer and not any("put" in r["messages"] and r["flows"] == ["ingress"]
                               for r in viewer)
@@ -78,7 +83,7 @@ def test_a_router_with_the_generated_rules_refuses_what_a_role_may_not_do(tmp_pa
     with one of another CA, cannot connect; the planner's command reaches the recorder; the
     viewer's cmd, state, events, clock and a liveliness token of a planner do not."""
     certs, other = tmp_path / "certs", tmp_path / "other"
-    make_certs(certs, ("router", "planner", "viewer", "recorder"))
+    make_certs(certs, ("router", "planner", "viewer", "recorder", "plant"))
     make_certs(other, ("planner",))
     assert (certs / "planner.key").stat().st_mode & 0o077 == 0
     port = free_port()
@@ -101,6 +106,16 @@ def test_a_router_with_the_generated_rules_refuses_what_a_role_may_not_do(tmp_pa
     time.sleep(0.8)
     assert got == [(topic_key(V, "cmd"), b"planner")]
     assert tokens == [alive_key(V, "planner", "0")]                 # the planner's alone
+    # a restarted planner asks any instance for the newest command with wildcards: the
+    # plant's queryable hears it and its reply comes back
+    plant = _session("client", certs, "plant", port)
+    held = latest_key(V, "plant", "0", "cmd")
+    plant.declare_queryable(held, lambda q: q.reply(held, b"held"))
+    time.sleep(0.3)
+    replies = [r.ok.payload.to_bytes() for r in
+               planner.get(latest_key(V, "*", "*", "cmd"), timeout=2.0) if r.ok is not None]
+    assert replies == [b"held"]
+    plant.close()
     planner_token.undeclare()
     time.sleep(0.3)
     for name, d in ((None, certs), ("planner", other)):
@@ -108,6 +123,42 @@ def test_a_router_with_the_generated_rules_refuses_what_a_role_may_not_do(tmp_pa
             _session("client", d, name, port)
     viewer_token.undeclare()
     for s in (viewer, planner, rec, router):
+        s.close()
+
+
+@needs_openssl
+def test_a_revoked_certificate_connects_but_is_denied_everything(tmp_path):
+    """`vamppi certs --revoke planner-2`: a router started after it (rules from the
+    directory's accepted names) lets a stolen copy of planner-2's certificate complete TLS,
+    but denies its command and token; planner-3's, issued beside it, still pass."""
+    import subprocess
+    import sys
+    certs, stolen = tmp_path / "certs", tmp_path / "stolen"
+    make_certs(certs, ("router", "recorder", "planner-2", "planner-3"))
+    stolen.mkdir()
+    for f in ("planner-2.pem", "planner-2.key", "ca.pem"):
+        shutil.copy(certs / f, stolen / f)
+    r = subprocess.run([sys.executable, "-m", "deploy.cli", "certs", str(certs),
+                        "--revoke", "planner-2"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["accepted"] == ["planner-3", "recorder", "router"]
+    assert not (certs / "planner-2.key").exists()
+    with pytest.raises(Exception, match="revoked"):
+        make_certs(certs, ("planner-2",))
+    port = free_port()
+    router = _session("router", certs, "router", port, listen=True,
+                      acl=access_control(V, names=accepted_names(certs)))
+    got = []
+    rec = _session("client", certs, "recorder", port)
+    rec.declare_subscriber(f"vamppi/{V}/**", lambda s: got.append(s.payload.to_bytes()))
+    thief = _session("client", stolen, "planner-2", port)       # TLS still succeeds
+    ok = _session("client", certs, "planner-3", port)
+    time.sleep(0.5)
+    thief.put(topic_key(V, "cmd"), b"revoked")
+    ok.put(topic_key(V, "cmd"), b"accepted")
+    time.sleep(0.5)
+    assert got == [b"accepted"]
+    for s in (ok, thief, rec, router):
         s.close()
 
 
@@ -122,7 +173,7 @@ def test_vamppi_certs_names_the_role_and_instance(tmp_path):
     assert len(json.loads(r.stdout)["certificates"]) == 2
     subject = subprocess.run(["openssl", "x509", "-in", str(tmp_path / "planner-7.pem"),
                               "-noout", "-subject"], capture_output=True, text=True).stdout
-    assert "CN = planner" in subject and "OU = 7" in subject
+    assert "CN = planner-7" in subject and "OU = 7" in subject
     bad = subprocess.run([sys.executable, "-m", "deploy.cli", "certs", str(tmp_path),
                           "--name", "rogue"], capture_output=True, text=True, timeout=60)
     assert bad.returncode == 1 and "a role" in bad.stderr
@@ -139,6 +190,7 @@ def test_vamppi_up_over_mutual_tls_is_bit_identical_and_denies_a_wrong_role(tmp_
     import os
 
     from common.config import load_config
+    from common.messages import Event, Header, encode
     from deploy.faults import Up, recorded_trajectory
     from deploy.runner import run_episode
     certs = tmp_path / "certs"
@@ -154,16 +206,25 @@ def test_vamppi_up_over_mutual_tls_is_bit_identical_and_denies_a_wrong_role(tmp_
     port = int(line.split("router on ")[1].split()[0].rsplit(":", 1)[1])
     rogue = _session("client", certs, "viewer", port)
     token = rogue.liveliness().declare_token(alive_key(marker, "planner", "9"))
-    for _ in range(50):
+    # a stolen plant certificate: an outcome event under the plant's name, another process
+    thief = _session("client", certs, "plant", port)
+    fakes = [encode(Event(Header(i, 0.5 + 0.02 * i, time.time(), "plant/0", boot=1),
+                          kind="success", outcome="success", time_to_goal_s=0.5))
+             for i in range(50)]
+    for fake in fakes:
         for topic in ("cmd", "state", "events", "clock"):
             rogue.put(topic_key(marker, topic), b"forged")
+        thief.put(topic_key(marker, "events"), fake)
         time.sleep(0.02)
     summary = up.finish()
     token.undeclare()
     rogue.close()
+    thief.close()
     assert summary["outcome"] == "timeout" and summary["failure"] is None, up.stderr()[-3000:]
+    assert summary["foreign_events"] == 50              # not the plant vamppi up started
     from deploy.recording import iter_messages
     assert not [m.key for m in iter_messages(path) if m.data == b"forged"]
+    assert sum(m.data in fakes for m in iter_messages(path)) == 50   # the role may put them
     assert recorded_trajectory(path).tobytes() == ref.tobytes()
 
 

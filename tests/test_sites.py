@@ -50,8 +50,11 @@ def test_lockstep_across_two_secured_sites_is_bit_identical_under_attack(tmp_pat
             zenoh.open(bare)
         viewer = Rogue(b_here, v, at=10, bus=s.secured("viewer", b_here))
         token = viewer.session.liveliness().declare_token(alive_key(v, "planner", "9"))
+        for topic in ("events", "clock"):                   # the plant's other topics
+            viewer.session.put(topic_key(v, topic), b"forged")
         forger = Rogue(b_here, v, at=20, bus=s.secured("planner", b_here))
         s.up()
+        assert p.bus.tokens(alive_key(v, "planner", "9")) == []        # denied at B
         assert p.wait_outcome().kind == "timeout"
         time.sleep(0.5)
         sent = {"viewer": list(viewer.sent), "planner": list(forger.sent)}
@@ -74,14 +77,13 @@ def test_lockstep_across_two_secured_sites_is_bit_identical_under_attack(tmp_pat
             publishers[m.key.rsplit("/", 1)[1]].add("undecodable")
             continue
         publishers[m.key.rsplit("/", 1)[1]].add((h.source, h.boot))
-    for topic in ("state", "depth", "map"):
+    for topic in ("state", "depth", "map", "events", "clock"):
         assert len(publishers[topic]) == 1, publishers[topic]     # the real one alone
     assert len(publishers["cmd"]) > 2                  # the forger's newer boot, rogue/0
     rej = collections.Counter(r for text in logs.values() for r in rejections(text))
     assert {t for t, _ in rej} == {"cmd"}, rej         # only the planner's cmd got through
     cmd_why = {w for t, w in rejections(plant_log) if t == "cmd"}
     assert {"duplicate", "stale", "future", "not the authority"} <= cmd_why, cmd_why
-    assert alive_key(v, "planner", "9") not in plant_log
 
 
 def test_realtime_across_two_secured_sites_holds_10_hz_under_a_denied_flood(tmp_path):
