@@ -702,12 +702,19 @@ class ClockOffset:
 
 
 def measure_clocks(transport: Transport, vehicle: str, rounds: int = 3,
-                   known: dict[str, ClockOffset] | None = None) -> dict[str, ClockOffset]:
+                   known: dict[str, ClockOffset] | None = None,
+                   reachable: Callable[[str], bool] = lambda source: True
+                   ) -> dict[str, ClockOffset]:
     """Every live instance's clock offset ("service/instance" -> the tightest of `rounds`
-    round trips to its clock queryable, and of `known`)."""
+    round trips to its clock queryable, and of `known`). Only instances `reachable` says
+    are asked: a query to one behind a cut link that is still pending when the link
+    returns leaves that instance's subscriptions dead in zenoh 1.10 (reproduced by the
+    lockstep cut-link test under load)."""
     out = dict(known or {})
     for service, instance in alive_instances(transport, vehicle):
         source = f"{service}/{instance}"
+        if not reachable(source):
+            continue
         for _ in range(rounds):
             sent = time.time()
             got = query_json(transport, admin_key(vehicle, service, instance, "clock"), 1.0)

@@ -218,7 +218,8 @@ class Recorder:
     """
 
     RECOVERY_WAIT_S = 2.0          # a recovered sample the live stream may still bring
-    CLOCK_SYNC_S = 2.0             # between measurements of the publishers' clocks
+    CLOCK_SYNC_S = 10.0            # between measurements of the publishers' clocks
+    BEAT_FRESH_S = 0.3             # a publisher is asked its clock only if it beat since
 
     def __init__(self, bus: Any, keys: str, path: str | Path,
                  meta: dict[str, dict[str, str]], flush_interval_s: float = FLUSH_INTERVAL_S,
@@ -226,7 +227,8 @@ class Recorder:
         """`clock_sync_s`: how often the live services' clock offsets are measured
         (`common.bus.measure_clocks`) and noted in the recording (metadata
         `vamppi.clock`, the tightest so far), for `vamppi timing` across hosts; None: never
-        (and for keys that are not one vehicle's)."""
+        (and for keys that are not one vehicle's). Only a service whose heartbeat arrived
+        within `BEAT_FRESH_S` is asked, and a new one as soon as it beats."""
         self.keys, self.path = keys, Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._writer = RecordingWriter(self.path, meta, flush_interval_s)
@@ -242,6 +244,7 @@ class Recorder:
         self._thread.start()
         self.clocks: dict[str, Any] = {}
         self._clocks_changed = False
+        self._beats: dict[str, float] = {}        # source -> monotonic time of its beat
         parts = keys.split("/")
         if clock_sync_s is not None and len(parts) == 3 and parts[2] == "**" and "*" not in \
                 parts[1]:
@@ -258,6 +261,11 @@ class Recorder:
 
     def _on_sample(self, key: str, payload: bytes, recovery: bool) -> None:
         item = (key, payload, time.time_ns(), recovery)
+        if key.endswith("/heartbeat") and not recovery:
+            try:
+                self._beats[peek(payload)[1].source] = time.monotonic()
+            except DecodeError:
+                pass
         with self._cv:
             self._queue.append(item)
             self.received += not recovery
@@ -266,18 +274,25 @@ class Recorder:
 
     def _sync_clocks(self, bus: Any, vehicle: str, every_s: float) -> None:
         from common.bus import measure_clocks
+
+        def beating(source: str) -> bool:
+            return time.monotonic() - self._beats.get(source, -1e9) < self.BEAT_FRESH_S
+        last = -1e9
         while not self._stop:
-            try:
-                clocks = measure_clocks(bus, vehicle, known=self.clocks)
-            except Exception as exc:          # a closing session: the next round, or none
-                log.debug("clock sync: %s", exc)
-                clocks = self.clocks
-            with self._cv:
-                if clocks != self.clocks:
-                    self.clocks, self._clocks_changed = clocks, True
-            deadline = time.monotonic() + every_s
-            while not self._stop and time.monotonic() < deadline:
-                time.sleep(0.1)
+            since = time.monotonic() - last
+            new = [s for s in self._beats if s not in self.clocks and beating(s)]
+            if since >= every_s or (new and since >= 1.0):    # a new one: within a second
+                last = time.monotonic()
+                try:
+                    clocks = measure_clocks(bus, vehicle, known=self.clocks,
+                                            reachable=beating)
+                except Exception as exc:      # a closing session: the next round, or none
+                    log.debug("clock sync: %s", exc)
+                    clocks = self.clocks
+                with self._cv:
+                    if clocks != self.clocks:
+                        self.clocks, self._clocks_changed = clocks, True
+            time.sleep(0.1)
 
     def _recovered(self, key: str, payload: bytes, t: int, since: float, final: bool) -> bool:
         """Write a sample of the recovering subscription if the live one missed it; False

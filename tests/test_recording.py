@@ -330,11 +330,12 @@ def test_a_clock_offset_is_true_within_half_the_round_trip(rng):
 
 
 def test_recorder_measures_clocks_and_timing_corrects_for_them(tmp_path):
-    """A publisher whose clock runs 5 s ahead: the recorder measures its offset over the
-    bus (a clock queryable on a MemoryBus) and notes it; `vamppi timing` puts its wall
-    times on the recorder's clock, so the transport latency is its true few milliseconds,
-    not -5 s."""
-    from common.bus import MemoryBus, MemoryTransport, admin_key, alive_key
+    """A publisher whose clock runs 5 s ahead: once it beats, the recorder measures its
+    offset over the bus (a clock queryable on a MemoryBus) and notes it; `vamppi timing`
+    puts its wall times on the recorder's clock, so the transport latency is its true few
+    milliseconds, not -5 s."""
+    from common.bus import MemoryBus, MemoryTransport, admin_key, alive_key, heartbeat_key
+    from common.messages import Heartbeat
     from deploy.recording import Recorder, recorded_clocks
     bus, ahead = MemoryBus(), 5.0
     svc = MemoryTransport(bus)
@@ -346,7 +347,10 @@ def test_recorder_measures_clocks_and_timing_corrects_for_them(tmp_path):
                    recording_metadata(load_config(overrides=SHORT).to_dict(), "vamppi/v0/**"),
                    clock_sync_s=0.2)
     pub = MemoryTransport(bus).publisher(topic_key("v0", "state"))
+    beat = MemoryTransport(bus).publisher(heartbeat_key("v0", "plant"))
     for i in range(50):
+        beat.put(encode(Heartbeat(Header(i, 0.0, time.time() + ahead, "plant/0"),
+                                  status="ready", role="", deadline_s=1.0, detail="")))
         s = state(i)
         s = dataclasses.replace(s, header=dataclasses.replace(
             s.header, wall_time=time.time() + ahead - 0.003))         # sent 3 ms before

@@ -209,7 +209,8 @@ def test_vamppi_up_over_mutual_tls_is_bit_identical_and_denies_a_wrong_role(tmp_
     # a stolen plant certificate: an outcome event under the plant's name, another process
     thief = _session("client", certs, "plant", port)
     fakes = [encode(Event(Header(i, 0.5 + 0.02 * i, time.time(), "plant/0", boot=1),
-                          kind="success", outcome="success", time_to_goal_s=0.5))
+                          kind="success", outcome="success", time_to_goal_s=0.5,
+                          detail="at the goal"))
              for i in range(50)]
     for fake in fakes:
         for topic in ("cmd", "state", "events", "clock"):
