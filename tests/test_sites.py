@@ -53,7 +53,7 @@ def test_lockstep_across_two_secured_sites_is_bit_identical_under_attack(tmp_pat
         token = viewer.session.liveliness().declare_token(alive_key(v, "planner", "9"))
         for topic in ("events", "clock"):                   # the plant's other topics
             viewer.session.put(topic_key(v, topic), b"forged")
-        forger = Rogue(b_here, v, at=20, bus=s.secured("planner", b_here))
+        forger = Rogue(b_here, v, at=5, bus=s.secured("planner", b_here))
         s.up()
         assert p.bus.tokens(alive_key(v, "planner", "9")) == []        # denied at B
         assert p.wait_outcome().kind == "timeout"
