@@ -167,9 +167,15 @@ def accepted_names(certs: str | Path) -> tuple[str, ...]:
     `vamppi certs` issued there (a role or `role-instance`; not the CA), less those
     `vamppi certs --revoke` listed in `revoked.txt`."""
     d = Path(certs).expanduser()
-    revoked = set((d / REVOKED).read_text().split()) if (d / REVOKED).exists() else set()
+    revoked = revoked_names(d)
     return tuple(sorted(p.stem for p in d.glob("*.pem") if p.stem != "ca"
                         and role_of(p.stem) in ROLES and p.stem not in revoked))
+
+
+def revoked_names(certs: str | Path) -> set[str]:
+    """The names `revoked.txt` in the directory `certs` lists (none if there is none)."""
+    f = Path(certs).expanduser() / REVOKED
+    return set(f.read_text().split()) if f.exists() else set()
 
 
 def role_of(name: str) -> str:

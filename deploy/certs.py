@@ -22,7 +22,7 @@ import subprocess
 import tempfile
 from pathlib import Path
 
-from common.security import REVOKED, ROLES, accepted_names, role_of
+from common.security import REVOKED, ROLES, accepted_names, revoked_names, role_of
 
 DAYS = 365
 
@@ -56,7 +56,7 @@ def make_certs(out: str | Path, names: tuple[str, ...] = ROLES,
     sans = ",".join(f"IP:{h}" if h.replace(".", "").isdigit() or ":" in h else f"DNS:{h}"
                     for h in hosts)
     made = []
-    revoked = _revoked(d)
+    revoked = revoked_names(d)
     for name in names:
         role, _, instance = name.partition("-")
         if role not in ROLES or not all(c.isalnum() or c in "_." for c in instance):
@@ -84,7 +84,7 @@ def ensure_certs(out: str | Path) -> Path:
     on first use). Made in a directory beside it and renamed into place, so that two
     launchers starting at once never see half of it."""
     d = Path(out).expanduser()
-    wanted = [n for n in ROLES if n not in _revoked(d)]
+    wanted = [n for n in ROLES if n not in revoked_names(d)]
     if all((d / f"{n}.pem").exists() for n in ("ca", *wanted)):
         return d
     d.parent.mkdir(parents=True, exist_ok=True)
@@ -101,20 +101,15 @@ def ensure_certs(out: str | Path) -> Path:
     return d
 
 
-def _revoked(d: Path) -> set[str]:
-    return set((d / REVOKED).read_text().split()) if (d / REVOKED).exists() else set()
-
-
 def revoke(out: str | Path, name: str) -> list[str]:
     """List `name` in the directory's `revoked.txt` and delete its key and certificate; the
     names its routers accept from then on (restart them to apply)."""
     d = Path(out).expanduser()
     if not (d / "ca.pem").exists() or role_of(name) not in ROLES:
         raise CertError(f"{name!r}: not a certificate name of {d}")
-    if name not in _revoked(d):
+    if name not in revoked_names(d):
         with open(d / REVOKED, "a") as f:
             f.write(name + "\n")
     for ext in ("pem", "key"):
         (d / f"{name}.{ext}").unlink(missing_ok=True)
     return list(accepted_names(d))
-

@@ -270,3 +270,31 @@ def test_user_password_instead_of_tls(tmp_path):
         client("rogue", bad)
     for s in (viewer, planner, rec, router):
         s.close()
+
+
+def test_site_files_are_routers_that_never_scout_and_a_bad_one_is_a_clear_error(tmp_path):
+    """deploy/sites: each router file parses (zenoh's own format), listens where it says
+    and never scouts; each service file is a client of its site's router. A missing or
+    malformed router file ends `vamppi router` with exit 2 and the reason."""
+    import subprocess
+    import sys
+
+    from common.bus import endpoints_of
+    from common.config import load_config
+    from deploy.faults import SITES
+    for f in sorted(SITES.glob("*.json5")):
+        zc = zenoh.Config.from_file(str(f))
+        assert endpoints_of(zc, "listen", "router"), f
+        assert json.loads(zc.get_json("scouting/multicast/enabled")) is False
+        assert json.loads(zc.get_json("scouting/gossip/enabled")) is False
+    assert endpoints_of(zenoh.Config.from_file(str(SITES / "site-b.json5")), "connect",
+                        "router") == ["tls/10.0.0.1:7447"]
+    for f in sorted(SITES.glob("*.toml")):
+        bus = load_config(f).bus
+        assert bus.mode == "client" and bus.connect == ("tls/127.0.0.1:7447",)
+    bad = tmp_path / "bad.json5"
+    bad.write_text("{ mode: 'router', listen: { endpoints: [1, 2")
+    for path in (bad, tmp_path / "missing.json5"):
+        r = subprocess.run([sys.executable, "-m", "deploy.cli", "router", "--config",
+                            str(path)], capture_output=True, text=True, timeout=60)
+        assert r.returncode == 2 and "vamppi router:" in r.stderr, r.stderr[-500:]
