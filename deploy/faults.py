@@ -325,25 +325,26 @@ def hostile(topic: str, msg: Any, first: Any) -> list[tuple[str, bytes]]:
 
 
 class Rogue:
-    """Another client on the router: at the `at`-th real message of each topic (of states,
-    which come five a tick, the 5 `at`-th) it sends every hostile variant of it once (from
-    its own thread)."""
+    """Another client on the router: at the `at`-th real message of each of `topics` (of
+    states, which come five a tick, the 5 `at`-th) it sends every hostile variant of it
+    once (from its own thread)."""
 
     TOPICS = ("state", "depth", "map", "cmd")
 
     def __init__(self, endpoint: str, vehicle: str, at: int = 10,
-                 bus: BusConfig | None = None):
+                 bus: BusConfig | None = None, topics: tuple[str, ...] = TOPICS):
         from common.messages import MESSAGE_TYPES
+        self.topics = topics
         self.session = open_session(bus or client(endpoint))
         self.sent: list[tuple[str, str]] = []
         self._first: dict[str, Any] = {}
         self._count: dict[str, int] = {}
-        self._types = {t: MESSAGE_TYPES[f"vamppi.{t.capitalize()}"] for t in self.TOPICS}
+        self._types = {t: MESSAGE_TYPES[f"vamppi.{t.capitalize()}"] for t in topics}
         self._lock = threading.Lock()
         self.vehicle = vehicle
         self._subs = [self.session.declare_subscriber(
             topic_key(vehicle, t), lambda s, t=t: self._on(t, s.payload.to_bytes()))
-            for t in self.TOPICS]
+            for t in topics]
         self.at = at
 
     def _on(self, topic: str, payload: bytes) -> None:

@@ -36,8 +36,9 @@ def test_lockstep_across_two_secured_sites_is_bit_identical_under_attack(tmp_pat
     without a certificate is refused at connect; a client with a viewer's certificate (the
     wrong role) at site B replays every topic's hostile messages (deploy.faults.hostile)
     and raises a planner's liveliness token, all denied by its router; and a client with a
-    planner's certificate sends the same forged commands, under the real planner's source
-    id among them, which its router lets through and the plant rejects, each counted."""
+    planner's certificate sends the same forged commands (its role's one topic), the real
+    planner's source id among them, which its router lets through and the plant rejects,
+    each counted."""
     ref = run_episode(load_config(overrides=SHORT)).trajectory
     with two_sites(SHORT, tmp_path) as s:
         p, v = s.pipeline, s.pipeline.cfg.episode.vehicle
@@ -53,7 +54,7 @@ def test_lockstep_across_two_secured_sites_is_bit_identical_under_attack(tmp_pat
         token = viewer.session.liveliness().declare_token(alive_key(v, "planner", "9"))
         for topic in ("events", "clock"):                   # the plant's other topics
             viewer.session.put(topic_key(v, topic), b"forged")
-        forger = Rogue(b_here, v, at=5, bus=s.secured("planner", b_here))
+        forger = Rogue(b_here, v, at=5, bus=s.secured("planner", b_here), topics=("cmd",))
         s.up()
         assert p.bus.tokens(alive_key(v, "planner", "9")) == []        # denied at B
         assert p.wait_outcome().kind == "timeout"
@@ -71,10 +72,9 @@ def test_lockstep_across_two_secured_sites_is_bit_identical_under_attack(tmp_pat
     # each offset is within its measurement's uncertainty
     assert set(clocks) == {"plant/0", "sensor/0", "mapper/0", "planner/0"}
     assert all(abs(c["offset_s"]) <= c["rtt_s"] / 2 + 1e-6 for c in clocks.values()), clocks
-    # every hostile message was sent (a planner receives no depth to forge); the viewer's
-    # reached nobody, the planner's only on cmd
+    # every hostile message was sent; the viewer's reached nobody, the planner's cmd did
     assert {t for t, _ in sent["viewer"]} == {"state", "depth", "map", "cmd"}
-    assert {t for t, _ in sent["planner"]} == {"state", "map", "cmd"}
+    assert {t for t, _ in sent["planner"]} == {"cmd"}
     publishers = collections.defaultdict(set)          # what the observer received
     for m in iter_messages(p.path):
         try:
