@@ -280,7 +280,7 @@ class Recorder:
         last = -1e9
         while not self._stop:
             since = time.monotonic() - last
-            new = [s for s in self._beats if s not in self.clocks and beating(s)]
+            new = [s for s in list(self._beats) if s not in self.clocks and beating(s)]
             if since >= every_s or (new and since >= 1.0):    # a new one: within a second
                 last = time.monotonic()
                 try:
