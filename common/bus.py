@@ -504,6 +504,10 @@ class TypedPublisher(Generic[M]):
 
 
 # ----------------------------------------------------------------------------- node
+class WorldMismatch(RuntimeError):
+    """The plant runs another scenario (its heartbeat's digest differs from this node's)."""
+
+
 class Node:
     """One service instance on the bus: transport, token, health, config and latest-value
     queryables, its heartbeat.
@@ -519,7 +523,7 @@ class Node:
 
     def __init__(self, bus: BusConfig | Transport, vehicle: str, service: str, instance: str,
                  config_dict: dict[str, Any] | None = None, heartbeat_s: float = 0.1,
-                 deadline_s: float = 1.0, stall_s: float | None = None):
+                 deadline_s: float = 1.0, stall_s: float | None = None, world: str = ""):
         self._bus, self.vehicle, self.service, self.instance = bus, vehicle, service, instance
         self.source = f"{service}/{instance}"
         self.boot = time.time_ns()
@@ -530,6 +534,8 @@ class Node:
         self.stall_s = deadline_s if stall_s is None else stall_s
         self.role = ""
         self.detail = ""
+        self.world = world                 # the digest of the scenario this instance runs
+        self.refused = ""                  # why it must stop: the plant runs another world
         self._keep: list[Any] = []
         self._token = None
         self._status = "starting"
@@ -553,7 +559,22 @@ class Node:
         self._beat_thread = threading.Thread(target=self._beat_loop, daemon=True,
                                              name=f"{self.service}-heartbeat")
         self._beat_thread.start()
+        if self.world and self.service != "plant":
+            self._keep.append(self.transport.subscriber(
+                heartbeat_key(self.vehicle, "plant"), self._on_plant_beat))
         return self
+
+    def _on_plant_beat(self, _key: str, payload: bytes) -> None:
+        try:
+            hb = decode(payload, Heartbeat)
+        except DecodeError:
+            return                        # counted where heartbeats are judged
+        if hb.world and hb.world != self.world and not self.refused:
+            self.refused = (f"this {self.service} runs scenario digest {self.world}, the plant "
+                            f"({hb.header.source}) {hb.world}: every service must load the "
+                            "same scenario file")
+            log.error("%s", self.refused)
+            self._arrived.set()
 
     def __exit__(self, *exc: object) -> None:
         self._stop_beat.set()
@@ -571,7 +592,10 @@ class Node:
 
     # heartbeat --------------------------------------------------------------
     def progress(self, stamp: float | None = None, episode: int | None = None) -> None:
-        """The main loop is alive (call it every iteration), working at sim time `stamp`."""
+        """The main loop is alive (call it every iteration), working at sim time `stamp`.
+        Raises WorldMismatch once the plant has been heard running another scenario."""
+        if self.refused:
+            raise WorldMismatch(self.refused)
         self._progress_wall = time.monotonic()
         if stamp is not None:
             self._stamp = float(stamp)
@@ -583,7 +607,7 @@ class Node:
         if status == "ready" and time.monotonic() - self._progress_wall > self.stall_s:
             status = "stalled"
         self._beats.publish(self._stamp, episode=self._episode, status=status, role=self.role,
-                            deadline_s=self.deadline_s, detail=self.detail)
+                            deadline_s=self.deadline_s, detail=self.detail, world=self.world)
 
     def _beat_loop(self) -> None:
         while not self._stop_beat.wait(self.heartbeat_s):

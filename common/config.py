@@ -30,7 +30,7 @@ def _rng(lo: float | None = None, hi: float | None = None, *, lo_open: bool = Fa
 
 @dataclass(frozen=True)
 class EpisodeConfig:
-    scenario: str = _rng(choices=("open-field", "alleyway", "offroad"))
+    scenario: str = _rng()      # a built-in's name or a scenario file (common.scenarios)
     seed: int = _rng(0)
     scenario_seed: int = _rng(0)
     layout: int = _rng(0)
@@ -124,6 +124,7 @@ class PlannerConfig:
     noise_force_n: float = _rng(0.0)
     noise_correlation: float = _rng(0.0, 0.999)
     brake_samples: int = _rng(0, 64)
+    swerve_samples: int = _rng(0, 64)
     rollouts_published: int = _rng(0, 1000)
     footprint_points: int = _rng(2, 64)
     footprint_arrays: int = _rng(2, 16)
@@ -152,6 +153,7 @@ class PlannerConfig:
     visibility_max_m: float = _rng(0.0, lo_open=True)
     visibility_height_m: float = _rng(0.0)
     visibility_lag_steps: int = _rng(1, 1000)
+    visibility_in_time: bool = _rng()
     visibility_stop_decel_mps2: float = _rng(0.0)
     count_value: float = _rng(0.0)
     splat_size: int = _rng(1, 99)
@@ -310,11 +312,13 @@ def config_from_dict(data: dict[str, dict[str, Any]]) -> Config:
 
 
 def _check_cross(cfg: Config) -> None:
-    from common.scenarios import resolve_layout
+    from common.scenarios import LayoutError, resolve_layout
     try:
         resolve_layout(cfg.episode.scenario, cfg.episode.layout)
-    except ValueError as exc:
+    except LayoutError as exc:
         raise ConfigError(f"episode.layout: {exc}") from None
+    except ValueError as exc:
+        raise ConfigError(f"episode.scenario: {exc}") from None
     v, p = cfg.vehicle, cfg.planner
     if v.dynamic_above_mps <= v.kinematic_below_mps:
         raise ConfigError("vehicle.dynamic_above_mps must exceed vehicle.kinematic_below_mps")
@@ -358,6 +362,29 @@ def load_config(path: str | Path | None = None, overrides: list[str] | dict[str,
             parse_override(o) for o in overrides)
         data = _merge(data, _dotted(pairs))
     return config_from_dict(data)
+
+
+PRESETS_DIR = Path(__file__).with_name("presets")
+
+
+def presets() -> list[str]:
+    return sorted(p.stem for p in PRESETS_DIR.glob("*.toml"))
+
+
+def preset_overrides(name: str) -> list[str]:
+    """A preset's parameters (common/presets/NAME.toml) as section.key=value overrides."""
+    path = PRESETS_DIR / f"{name}.toml"
+    if not path.exists():
+        raise ConfigError(f"unknown preset {name!r}; choose one of {', '.join(presets())}")
+    data = tomllib.loads(path.read_text())
+    defaults = default_dict()
+    out = []
+    for section, values in data.items():
+        for key, value in values.items():
+            if key not in defaults.get(section, {}):
+                raise ConfigError(f"preset {name}: unknown parameter {section}.{key}")
+            out.append(f"{section}.{key}={json.dumps(value)}")
+    return out
 
 
 def as_overrides(cfg: Config, skip: tuple[str, ...] = ()) -> list[str]:

@@ -17,6 +17,7 @@ from common.messages import Heartbeat
 
 FAILED = ("stalled", "stopping", "retired")   # a retired planner was replaced by a swap
 RETIRED_EXIT = 3      # the exit status of a planner replaced by a swap (vamppi up lets it go)
+REFUSED_EXIT = 4      # ... of a service that found the plant running another scenario
 
 
 @dataclass(frozen=True)
@@ -30,6 +31,7 @@ class Beat:
     stamp: float
     episode: int
     wall: float                 # receive wall time
+    world: str = ""             # the digest of the scenario it runs ("" unknown)
 
     @property
     def service(self) -> str:
@@ -44,7 +46,8 @@ class Watch:
 
 def on_beat(w: Watch, hb: Heartbeat, wall: float) -> Watch:
     h = hb.header
-    beat = Beat(h.source, h.boot, hb.status, hb.role, hb.deadline_s, h.stamp, h.episode, wall)
+    beat = Beat(h.source, h.boot, hb.status, hb.role, hb.deadline_s, h.stamp, h.episode, wall,
+                hb.world)
     return Watch({**w.beats, (h.source, h.boot): beat})
 
 
@@ -73,6 +76,12 @@ def failed(w: Watch, wall: float) -> list[Beat]:
         if b is not None and not is_alive(b, wall):
             out.append(b)
     return out
+
+
+def other_world(b: Beat | None, world: str) -> bool:
+    """Whether the beat states a scenario digest that differs from `world` (either
+    unknown: no)."""
+    return b is not None and bool(b.world) and bool(world) and b.world != world
 
 
 def missing(w: Watch, services: tuple[str, ...], wall: float) -> list[str]:

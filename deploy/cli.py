@@ -27,11 +27,11 @@ from pathlib import Path
 from typing import Any
 
 from common import compile_cache
-from common.config import Config, ConfigError, load_config
+from common.config import Config, ConfigError, load_config, preset_overrides
 from common.memory import keep_large_buffers
 from common.process import PARENT_ENV, die_with_parent, exit_now, stop_on_signals, when_orphaned
 from common.security import default_certs, with_identity
-from common.supervision import RETIRED_EXIT
+from common.supervision import REFUSED_EXIT, RETIRED_EXIT
 
 
 def add_config_args(p: argparse.ArgumentParser) -> None:
@@ -39,7 +39,9 @@ def add_config_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--config", help="TOML file merged over the defaults")
     g.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="override one parameter (repeatable)")
-    g.add_argument("--scenario", help="episode.scenario")
+    g.add_argument("--preset", help="a named set of parameters (common/presets: paper = the "
+                                    "paper's method), over --config and under --set")
+    g.add_argument("--scenario", help="episode.scenario: a built-in's name or a scenario file")
     g.add_argument("--controller", help="planner.controller")
     g.add_argument("--samples", type=int, help="planner.samples (K)")
     g.add_argument("--clock", choices=("lockstep", "realtime"), help="episode.clock")
@@ -55,8 +57,11 @@ def add_bus_args(p: argparse.ArgumentParser) -> None:
 
 
 def overrides_from_args(args: argparse.Namespace) -> list[str]:
-    """The --set list plus the shorthand flags, as section.key=value strings."""
-    out = list(getattr(args, "set", []))
+    """The --preset's parameters, the --set list and the shorthand flags, as
+    section.key=value strings (later ones win)."""
+    preset = getattr(args, "preset", None)
+    out = preset_overrides(preset) if preset else []
+    out += list(getattr(args, "set", []))
     for flag, key in (("scenario", "episode.scenario"), ("controller", "planner.controller"),
                       ("samples", "planner.samples"), ("clock", "episode.clock"),
                       ("seed", "episode.seed"), ("vehicle", "episode.vehicle"),
@@ -115,17 +120,22 @@ def cmd_service(args: argparse.Namespace, cfg: Config) -> int:
         when_orphaned(parent_gone)
     os.environ.pop(PARENT_ENV, None)
     cfg = with_identity(cfg, args.name, args.instance)
+    from common.bus import WorldMismatch
     module = importlib.import_module(SERVICE_MAINS[args.name])
     role = "standby" if args.standby else args.role
-    if args.name == "planner":
-        ended = module.main(cfg, args.instance, stop, role=role,
-                            take_over_after_s=args.take_over_after, retire=not args.keep_old,
-                            take_over_at_s=args.take_over_at)
-        return exit_now(RETIRED_EXIT if ended == "retired" else 0)
-    if role != "active":
+    if args.name != "planner" and role != "active":
         print(f"vamppi service: --role is for planners; {args.name} has none", file=sys.stderr)
         return 2
-    module.main(cfg, args.instance, stop)
+    try:
+        if args.name == "planner":
+            ended = module.main(cfg, args.instance, stop, role=role,
+                                take_over_after_s=args.take_over_after,
+                                retire=not args.keep_old, take_over_at_s=args.take_over_at)
+            return exit_now(RETIRED_EXIT if ended == "retired" else 0)
+        module.main(cfg, args.instance, stop)
+    except WorldMismatch as exc:
+        print(f"vamppi service {args.name}: refused: {exc}", file=sys.stderr)
+        return exit_now(REFUSED_EXIT)
     return exit_now(0)
 
 
@@ -175,18 +185,45 @@ def cmd_run(args: argparse.Namespace, cfg: Config) -> int:
 
 
 def cmd_scenario(args: argparse.Namespace, cfg: Config) -> int:
-    """The scenario's start, goal and obstacles as JSON; --plot writes its picture."""
+    """show: the scenario's start, goal and obstacles as JSON (--plot writes its picture);
+    export: its scenario file; generate: a procedural world (deploy/generate.py); set: the
+    benchmark set of generated worlds, split into a tuning half and a held-out half."""
     from dataclasses import asdict
 
-    from common.scenarios import scenario_of
-    scn = scenario_of(cfg)
-    print(json.dumps({"name": scn.name, "seed": scn.seed, "layout": scn.layout,
+    from common.scenarios import ScenarioError, save_spec, scenario_of, spec_of, spec_toml
+    from deploy.generate import GenerateError, generate, write_set
+    try:
+        if args.action == "generate":
+            spec = generate(cfg, args.kind or "", 1 if args.seed is None else args.seed,
+                            drive=not args.no_drive)
+            if args.out:
+                print(save_spec(spec, args.out))
+            else:
+                print(spec_toml(spec), end="")
+            return 0
+        if args.action == "set":
+            for path in write_set(cfg, Path(args.out), args.per_kind, args.kind, jobs=args.jobs):
+                print(path, flush=True)
+            return 0
+        if args.action == "export":
+            spec = spec_of(cfg.episode.scenario, cfg.episode.layout)
+            if args.out:
+                print(save_spec(spec, args.out))
+            else:
+                print(spec_toml(spec), end="")
+            return 0
+        scn = scenario_of(cfg)
+    except (ScenarioError, GenerateError) as exc:
+        print(f"vamppi scenario: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps({"name": scn.name, "kind": scn.kind, "seed": scn.seed,
+                      "layout": scn.layout, "digest": scn.digest,
                       "description": scn.description,
                       "start": asdict(scn.start), "goal": asdict(scn.goal),
                       "obstacles": [asdict(o) for o in scn.obstacles]}, indent=1))
     if args.plot:
         from deploy.plots import plot_scenario
-        plot_scenario(cfg, scn.name, Path(args.plot))
+        plot_scenario(cfg, cfg.episode.scenario, Path(args.plot))
     return 0
 
 
@@ -252,10 +289,11 @@ def cmd_health(args: argparse.Namespace, cfg: Config) -> int:
 
 
 def cmd_experiment(args: argparse.Namespace, cfg: Config) -> int:
-    from deploy.experiment import ExperimentError, experiment, parse_list
+    from deploy.experiment import ExperimentError, expand_scenarios, experiment, parse_list
     signal.signal(signal.SIGTERM, _interrupt)     # SIGTERM unwinds like Ctrl-C: workers stop
     try:
-        summary = experiment(cfg, parse_list(args.scenarios), parse_list(args.controllers),
+        summary = experiment(cfg, expand_scenarios(parse_list(args.scenarios)),
+                             parse_list(args.controllers),
                              parse_list(args.samples_list, int), args.runs, args.seed_base,
                              Path(args.out), plots=not args.no_plots, progress=not args.quiet,
                              jobs=args.jobs)
@@ -580,7 +618,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("experiment", help="the paper's Monte-Carlo comparison, in-process")
     p.add_argument("--scenario", dest="scenarios", default="alleyway,offroad",
-                   help="comma-separated scenarios")
+                   help="comma-separated scenarios: built-in names, scenario files, and "
+                        "directories of them (every *.toml inside)")
     p.add_argument("--controllers", default="va,deterministic,prescient")
     p.add_argument("--samples", dest="samples_list", default="400", help="e.g. 400,1000,4000")
     p.add_argument("--runs", type=int, default=20, help="runs per scenario/controller/samples")
@@ -597,8 +636,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
     p.set_defaults(func=cmd_experiment)
 
-    p = sub.add_parser("scenario", help="a scenario's layout as JSON, and its picture")
-    p.add_argument("--plot", metavar="FILE.png", help="write the top-down picture")
+    p = sub.add_parser("scenario", help="a scenario as JSON and its picture; its file; "
+                                        "generated worlds")
+    p.add_argument("action", nargs="?", default="show",
+                   choices=("show", "export", "generate", "set"),
+                   help="show (default): --scenario's JSON; export: its scenario file; "
+                        "generate: the world of --kind and --seed (default 1); set: "
+                        "--per-kind worlds of every kind into OUT/tune and OUT/heldout")
+    p.add_argument("--plot", metavar="FILE.png", help="show: write the top-down picture")
+    p.add_argument("--kind", help="generate: the world's kind (deploy/generate.py KINDS); "
+                                  "set: only these kinds (comma-separated)")
+    p.add_argument("--out", help="export, generate: the file (default: print it); "
+                                 "set: the directory")
+    p.add_argument("--per-kind", type=_positive_int, default=16,
+                   help="set: worlds of each kind, seeds 1 .. N: the odd seeds tune, "
+                        "the even ones are held out")
+    p.add_argument("--no-drive", action="store_true",
+                   help="generate: skip the prescient controller's check drive")
+    p.add_argument("--jobs", type=_positive_int, default=1, help="set: worlds drawn side by side")
     add_config_args(p)
     p.set_defaults(func=cmd_scenario)
 

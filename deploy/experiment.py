@@ -48,7 +48,7 @@ from tqdm import tqdm
 
 from common.config import Config, config_toml
 from common.process import when_orphaned
-from common.scenarios import resolve_layout
+from common.scenarios import build_scenario, resolve_layout
 from deploy.runner import Cores, run_episode
 from services.plant.core import OUTCOMES
 from services.plant.dynamics import S
@@ -92,7 +92,7 @@ def saved_config(cfg: Config, scenarios: list[str]) -> Config:
 
 def run_layout(r: dict[str, Any]) -> int:
     """The scenario layout a record ran on: records before session 27 carry none, and
-    ran on layout 1 (common/scenarios.py LAYOUTS)."""
+    ran on layout 1 (common/scenarios/builtin)."""
     return int(r.get("layout", 1))
 
 
@@ -104,6 +104,9 @@ def run_record(cfg: Config, result) -> dict[str, Any]:
     path = traj[::every][:, [0, 1 + S.X, 1 + S.Y, 1 + S.V, 1 + S.PSI]]
     speed = np.hypot(traj[:, 1], traj[:, 2])
     rec = result.summary(cfg)
+    scn = build_scenario(cfg.episode.scenario, cfg.episode.scenario_seed, cfg.mapper.resolution_m,
+                         cfg.episode.layout)
+    rec.update(world=scn.name, kind=scn.kind, scenario_digest=scn.digest)
     rec.update(path=np.round(path, 3).tolist(), max_speed_mps=round(float(speed.max()), 3),
                solve_ms=[round(x, 2) for x in result.solve_ms],
                scenario_seed=cfg.episode.scenario_seed,
@@ -150,20 +153,79 @@ def _append(path: Path, rec: dict[str, Any]) -> None:
         os.fsync(f.fileno())
 
 
-def summarize(runs: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
+def expand_scenarios(items: list[str]) -> list[str]:
+    """Scenario names and files, a directory standing for every scenario file in it."""
+    out: list[str] = []
+    for item in items:
+        p = Path(item)
+        if p.is_dir():
+            found = sorted(str(f) for f in p.glob("*.toml"))
+            if not found:
+                raise ExperimentError(f"{item}: a directory without scenario files (*.toml)")
+            out += found
+        else:
+            out.append(item)
+    return out
+
+
+def group_of(r: dict[str, Any], by: str) -> str:
+    """The row a record is summarised in: its scenario, its world's kind, or "all"."""
+    if by == "scenario":
+        return r["scenario"]
+    if by == "kind":
+        return r.get("kind") or r["scenario"]
+    return "all"
+
+
+def summarize(runs: Iterable[dict[str, Any]], by: str = "scenario") -> list[dict[str, Any]]:
+    """Per group (`by`: scenario, kind or all) x controller x samples: the count of each
+    outcome and the time to goal over the successful runs (mean, std, median); the
+    median of the per-run ratios to the prescient controller's time on the same world and
+    seed, where both succeeded; Fisher's exact test of the collision counts against each
+    other controller's in the group."""
+    runs = list(runs)
     groups: dict[tuple, list[dict[str, Any]]] = {}
     for r in runs:
-        groups.setdefault((r["scenario"], r["controller"], r["samples"]), []).append(r)
+        groups.setdefault((group_of(r, by), r["controller"], r["samples"]), []).append(r)
+    prescient = {(r["scenario"], r["samples"], r["seed"]): r["time_to_goal_s"] for r in runs
+                 if r["controller"] == "prescient" and r["outcome"] == "success"}
     out = []
-    for (scenario, controller, samples), rs in sorted(groups.items()):
+    for (group, controller, samples), rs in sorted(groups.items()):
         ttg = [r["time_to_goal_s"] for r in rs if r["outcome"] == "success"]
-        row: dict[str, Any] = {"scenario": scenario, "controller": controller,
-                               "samples": samples, "runs": len(rs)}
+        row: dict[str, Any] = {by: group, "controller": controller, "samples": samples,
+                               "runs": len(rs)}
+        if by != "scenario":
+            row["worlds"] = len({r["scenario"] for r in rs})
         row.update({o: sum(r["outcome"] == o for r in rs) for o in OUTCOMES})
         row["time_to_goal_mean_s"] = round(float(np.mean(ttg)), 3) if ttg else None
         row["time_to_goal_std_s"] = round(float(np.std(ttg)), 3) if ttg else None
+        row["time_to_goal_median_s"] = round(float(np.median(ttg)), 3) if ttg else None
+        ratios = [r["time_to_goal_s"] / prescient[key] for r in rs if r["outcome"] == "success"
+                  and (key := (r["scenario"], r["samples"], r["seed"])) in prescient]
+        row["ratio_to_prescient_median"] = (round(float(np.median(ratios)), 3) if ratios
+                                            and controller != "prescient" else None)
         out.append(row)
+    for row in out:
+        mine = (row[by], row["samples"])
+        row["collision_p"] = {
+            o["controller"]: round(fisher_exact(row["collision"], row["runs"] - row["collision"],
+                                                o["collision"], o["runs"] - o["collision"]), 6)
+            for o in out if (o[by], o["samples"]) == mine and o is not row}
     return out
+
+
+def fisher_exact(a: int, b: int, c: int, d: int) -> float:
+    """Two-sided p of Fisher's exact test on the table [[a, b], [c, d]]: the probability,
+    with the margins fixed, of a table no more likely than this one."""
+    from math import comb
+    n1, k, n = a + b, a + c, a + b + c + d
+    total = comb(n, k)
+
+    def prob(x: int) -> float:
+        return comb(n1, x) * comb(n - n1, k - x) / total
+    p0 = prob(a)
+    lo, hi = max(0, k - (n - n1)), min(k, n1)
+    return min(1.0, sum(p for x in range(lo, hi + 1) if (p := prob(x)) <= p0 * (1 + 1e-7)))
 
 
 # The paper's reported figures (Section "Results and Discussion"): failure percentage
@@ -184,28 +246,63 @@ PAPER: dict[tuple[str, str, int], dict[str, Any]] = {
 }
 
 
-def markdown_table(summary: list[dict[str, Any]]) -> str:
-    """The summary as a markdown table, the paper's figures beside ours."""
+def markdown_table(summary: list[dict[str, Any]], by: str = "scenario") -> str:
+    """A summary (`summarize(runs, by)`) as a markdown table; per scenario, the paper's
+    figures beside ours."""
     def pct(n: int, runs: int) -> str:
         return f"{100.0 * n / runs:.0f} %"
 
-    lines = ["| scenario | controller | K | runs | failures | collision | stopping | timeout "
-             "| time to goal, s | paper: failures (collisions) | paper: time to goal, s |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    paper_cols = by == "scenario"
+    head = (f"| {by} | controller | K | runs | success | collision | stopping | timeout "
+            "| time to goal, s | median, s | × prescient |")
+    lines = [head + (" paper: failures (collisions) | paper: time to goal, s |"
+                     if paper_cols else ""),
+             "|---" * (11 + 2 * paper_cols) + "|"]
     for r in summary:
         n = r["runs"]
-        fails = r["collision"] + r["stopping"] + r["timeout"]
-        ttg = (f"{r['time_to_goal_mean_s']:.2f} ± {r['time_to_goal_std_s']:.2f}"
-               if r["time_to_goal_mean_s"] is not None else "—")
-        paper = PAPER.get((r["scenario"], r["controller"], r["samples"]), {})
-        p_fail = (f"{paper['failure_pct']} %" + (f" ({paper['collision_pct']} %)"
-                                                 if "collision_pct" in paper else "")
-                  if "failure_pct" in paper else "—")
-        p_ttg = "{} ± {}".format(*paper["time_to_goal"]) if "time_to_goal" in paper else "—"
-        lines.append(f"| {r['scenario']} | {r['controller']} | {r['samples']} | {n} "
-                     f"| {pct(fails, n)} | {pct(r['collision'], n)} | {pct(r['stopping'], n)} "
-                     f"| {pct(r['timeout'], n)} | {ttg} | {p_fail} | {p_ttg} |")
+        ttg = "—"
+        if r["time_to_goal_mean_s"] is not None:
+            ttg = (f"{r['time_to_goal_mean_s']:.2f} ± {r['time_to_goal_std_s']:.2f}"
+                   if r["success"] > 1 else f"{r['time_to_goal_mean_s']:.2f}")
+        med = "—" if r.get("time_to_goal_median_s") is None else f"{r['time_to_goal_median_s']:.2f}"
+        ratio = ("—" if r.get("ratio_to_prescient_median") is None
+                 else f"{r['ratio_to_prescient_median']:.3f}")
+        line = (f"| {r[by]} | {r['controller']} | {r['samples']} | {n} | {pct(r['success'], n)} "
+                f"| {pct(r['collision'], n)} | {pct(r['stopping'], n)} | {pct(r['timeout'], n)} "
+                f"| {ttg} | {med} | {ratio} |")
+        if paper_cols:
+            paper = PAPER.get((r["scenario"], r["controller"], r["samples"]), {})
+            p_fail = (f"{paper['failure_pct']} %" + (f" ({paper['collision_pct']} %)"
+                                                     if "collision_pct" in paper else "")
+                      if "failure_pct" in paper else "—")
+            p_ttg = ("{} ± {}".format(*paper["time_to_goal"]) if "time_to_goal" in paper
+                     else "—")
+            line += f" {p_fail} | {p_ttg} |"
+        lines.append(line)
     return "\n".join(lines) + "\n"
+
+
+def fisher_lines(summary: list[dict[str, Any]], by: str) -> str:
+    """Fisher's exact test of each controller's collisions against the others'."""
+    rows = [f"- {r[by]}, K = {r['samples']}: {r['controller']} against "
+            + ", ".join(f"{c} p = {p:.3g}" for c, p in sorted(r["collision_p"].items()))
+            for r in summary if r["controller"] == "va" and r["collision_p"]]
+    return ("\nCollisions, Fisher's exact test (two-sided):\n\n" + "\n".join(rows) + "\n"
+            if rows else "")
+
+
+def summary_markdown(runs: list[dict[str, Any]]) -> tuple[str, dict[str, Any]]:
+    """summary.md's tables (overall and per world kind where the runs span more than one
+    world, then per scenario) and the summaries they show."""
+    per = {"scenario": summarize(runs)}
+    text = ""
+    if len({r["scenario"] for r in runs}) > 1:
+        for by in ("all", "kind"):
+            per[by] = summarize(runs, by)
+            text += f"By {by if by == 'kind' else 'set'}:\n\n" + markdown_table(per[by], by) \
+                + fisher_lines(per[by], by) + "\n"
+        text += "By scenario:\n\n"
+    return text + markdown_table(per["scenario"]), per
 
 
 def run_one(cfg: Config, key: tuple, cores_cache: dict[tuple, Cores]) -> tuple[Config, Any]:
@@ -335,10 +432,13 @@ def experiment(cfg: Config, scenarios: list[str], controllers: list[str], sample
             bar.set_postfix_str(f"{rec['scenario']}/{rec['controller']}/{rec['samples']}: "
                                 f"{rec['outcome']}")
     all_runs = read_runs(runs_path)
-    summary = summarize(all_runs)
+    text, per = summary_markdown(all_runs)
+    summary = per["scenario"]
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    (out / "summary.md").write_text(markdown_table(summary) + collisions_section(cfg, all_runs,
-                                                                                out))
+    if len(per) > 1:
+        (out / "summary-kinds.json").write_text(json.dumps(per["kind"] + per["all"], indent=2)
+                                                + "\n")
+    (out / "summary.md").write_text(text + collisions_section(cfg, all_runs, out))
     if plots:
         from deploy import plots as plotting
         plotting.plot_all(cfg, all_runs, summary, out)

@@ -50,7 +50,7 @@ from common.config import BusConfig, Config
 from common.messages import DecodeError, Event, Heartbeat, decode
 from common.process import PARENT_ENV
 from common.security import default_certs
-from common.supervision import FAILED, RETIRED_EXIT
+from common.supervision import FAILED, REFUSED_EXIT, RETIRED_EXIT
 from deploy.certs import ensure_certs
 from services.plant.protocol import OUTCOMES
 
@@ -134,6 +134,8 @@ def judge(child: ChildView, now: float, ready_timeout_s: float) -> str:
     if child.exit_code is not None:
         if child.exit_code == RETIRED_EXIT:
             return ""
+        if child.exit_code == REFUSED_EXIT:
+            return "refused: the plant runs another scenario"
         return f"exited with code {child.exit_code}"
     if child.beat_at is None or child.beat_status == "starting":
         if now - child.started > ready_timeout_s:
@@ -243,7 +245,9 @@ class Supervisor:
             if proc.poll() is None:
                 proc.kill()
                 proc.wait()
-            if self.restarts.get(label, 0) >= self.max_restarts:
+            # a service refused for another scenario would be refused again
+            if self.restarts.get(label, 0) >= self.max_restarts or \
+                    child.exit_code == REFUSED_EXIT:
                 log.error("vamppi up: %s", json.dumps({"gave_up": failure}))
                 return failure
             self.restarts[label] = self.restarts.get(label, 0) + 1

@@ -22,7 +22,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from common.config import Config  # noqa: E402
-from common.scenarios import scenario_of  # noqa: E402
+from common.scenarios import label, scenario_of  # noqa: E402
 
 log = logging.getLogger(__name__)
 CONTROLLER_COLORS = {"deterministic": "tab:red", "prescient": "tab:green", "va": "tab:blue"}
@@ -138,7 +138,7 @@ def plot_trajectories(cfg: Config, runs: list[dict[str, Any]], scenario: str, ou
         ax.set_ylabel("y, m")
     if line is not None:
         fig.colorbar(line, ax=axes[0].tolist(), label="speed, m/s")
-    return _save(fig, out / f"trajectories_{scenario}.png", tight=False)
+    return _save(fig, out / f"trajectories_{label(scenario)}.png", tight=False)
 
 
 def plot_solve_time(runs: list[dict[str, Any]], out: Path) -> Path:
@@ -177,7 +177,10 @@ def plot_visibility(cfg: Config, scenario: str, samples: int, seed: int, out: Pa
             ax.set_title(f"{title}, t = {s['t']:.1f} s, surface cost {s['terms'][2]:.0f}, "
                          f"f_xt {s['controls'][0][1]:.0f} N", fontsize=8)
     fig.suptitle(f"{scenario}, VA-MPPI K={samples}: {result.outcome}")
-    return _save(fig, out / f"visibility_{scenario}.png", dpi=110)
+    return _save(fig, out / f"visibility_{label(scenario)}.png", dpi=110)
+
+
+PER_SCENARIO_PLOTS = 6       # trajectories and visibility pictures only for this few scenarios
 
 
 def plot_all(cfg: Config, runs: list[dict[str, Any]], summary: list[dict[str, Any]],
@@ -185,7 +188,12 @@ def plot_all(cfg: Config, runs: list[dict[str, Any]], summary: list[dict[str, An
     if not runs:
         return []
     paths = [plot_failures(summary, out), plot_time_to_goal(runs, out), plot_solve_time(runs, out)]
-    for scenario in sorted({r["scenario"] for r in runs}):
+    scenarios = sorted({r["scenario"] for r in runs})
+    if len(scenarios) > PER_SCENARIO_PLOTS:
+        log.info("plots: %d scenarios, no per-scenario plots (at most %d)", len(scenarios),
+                 PER_SCENARIO_PLOTS)
+        scenarios = []
+    for scenario in scenarios:
         paths.append(plot_trajectories(cfg, runs, scenario, out))
         va = [r for r in runs if r["scenario"] == scenario and r["controller"] == "va"]
         if visibility and va:

@@ -33,6 +33,7 @@ import numpy as np
 from common.config import Config
 from common.geometry import bilinear
 from common.scenarios import Obstacle, Scenario
+from services.plant.dynamics import Reaction
 from services.sensor import core as sensor
 
 MIN_RETURNS = 20       # returns on an obstacle that count as seeing it (a 128 x 72 image)
@@ -55,16 +56,9 @@ class Sighting:
 def stopping_distance(cfg: Config, v: float) -> float:
     """Travel from the sighting to standing still on flat ground, drag and rolling
     resistance left out: one control tick at v before the command changes, the force
-    ramping 0 -> brake limit at the rate limit, then the brake limit."""
-    veh = cfg.vehicle
-    a = -veh.force_min_n / veh.mass_kg                     # full deceleration
-    ramp = -veh.force_min_n / veh.force_rate_max_nps       # seconds to reach it
-    d = v * cfg.planner.dt_s
-    if v <= a * ramp / 2.0:                                # stops during the ramp: v = a t^2 / 2T
-        t = math.sqrt(2.0 * v * ramp / a)
-        return d + v * t - a * t ** 3 / (6.0 * ramp)
-    v1 = v - a * ramp / 2.0
-    return d + v * ramp - a * ramp ** 2 / 6.0 + v1 * v1 / (2.0 * a)
+    ramping 0 -> brake limit at the rate limit, then the brake limit
+    (`services.plant.dynamics.Reaction`, which the planner's in-time rule uses too)."""
+    return float(Reaction.from_config(cfg.vehicle).stopping(v, cfg.planner.dt_s))
 
 
 def in_view(ob: Obstacle, x: float, y: float, yaw: float, reach: float, half_fov: float

@@ -77,7 +77,7 @@ def test_small_experiment_records_are_complete_and_resumable(tmp_path):
     assert len(table) == 2 + len(summary)
     assert ("What the collisions were on" in text) == any(x["outcome"] == "collision"
                                                           for x in runs)
-    assert all(row.startswith("| alleyway | ") and row.count("|") == 12 for row in table[2:])
+    assert all(row.startswith("| alleyway | ") and row.count("|") == 14 for row in table[2:])
     for name in ("failures.png", "time_to_goal.png", "solve_time.png",
                  "trajectories_alleyway.png", "visibility_alleyway.png"):
         assert (out / name).stat().st_size > 10_000, name

@@ -12,6 +12,7 @@ from common.config import load_config
 from services.planner import native
 from services.planner.costs import OFFSETS
 from services.planner.visibility import VisibilityParams, decayed_variance, visible_points
+from services.plant.dynamics import Reaction
 
 CFG = load_config(overrides=['planner.controller="va"'])
 VP = VisibilityParams.from_config(CFG)
@@ -47,11 +48,13 @@ def reference_visibility(vp, mean, state, rows, cols, res):
 
 def reference_counted(vp, state, vis):
     """Of the visible points (rays, points), those that count: at least the float64
-    stopping distance V dt + V^2 / 2a from the camera (all of them when a = 0)."""
-    if vp.stop_decel_mps2 <= 0.0:
+    reaction distance from the camera (all of them without the in-time rule), in float64
+    (`Reaction.distance`; its stopping is checked against an integration in test_reveal,
+    its swerve in test_dynamics)."""
+    if vp.reaction is None:
         return vis
     v = math.hypot(float(state[0]), float(state[1]))
-    stop = v * vp.react_s + v * v / (2.0 * vp.stop_decel_mps2)
+    stop = float(vp.reaction.distance(np.float64(v), vp.react_s, vp.react_lateral_m))
     return vis & (np.linspace(vp.ray_min_m, vp.ray_max_m, vp.points) >= stop)[None, :]
 
 
@@ -125,16 +128,17 @@ def float64_cells(vp, st):
     return np.floor(py / 0.2).astype(int), np.floor(px / 0.2).astype(int), ambiguous
 
 
-# (lag, stop deceleration): the paper's causality, a longer lag, points counted only
-# beyond the stopping distance
-CAUSALITY = [(1, 0.0), (4, 0.0), (1, 3.6)]
+# (lag, braking): the paper's causality, a longer lag, points counted only beyond the
+# distance to stop with the vehicle's brakes
+BRAKES = Reaction.from_config(load_config().vehicle)
+CAUSALITY = [(1, None), (4, None), (1, BRAKES), (1, Reaction.braking_only(3.6))]
 
 
 @pytest.mark.parametrize(("lag", "decel"), CAUSALITY)
 def test_decayed_variance_matches_the_dense_float64_reference(rng, lag, decel):
     """The vectorised JAX form: every ray point's cell and visibility checked, then the
     decayed variance at every query against the dense float64 computation."""
-    vp = dataclasses.replace(VP, lag_steps=lag, stop_decel_mps2=decel, backend="jax")
+    vp = dataclasses.replace(VP, lag_steps=lag, reaction=decel, backend="jax")
     mean, variance, states, got, rows, cols = solve_random_problem(vp, rng)
     seen = []
     for st in states:
@@ -160,14 +164,14 @@ def test_decayed_variance_matches_the_dense_float64_reference(rng, lag, decel):
 @pytest.mark.skipif(not native.available(), reason="the native kernel does not build here")
 # splat 17: patches of 19 cells, wider than a 16-lane row (the general path)
 @pytest.mark.parametrize(("lag", "decel", "splat"),
-                         [(*c, 9) for c in CAUSALITY] + [(1, 0.0, 7), (1, 0.0, 17)])
+                         [(*c, 9) for c in CAUSALITY] + [(1, None, 7), (1, None, 17)])
 def test_native_kernel_matches_the_dense_float64_reference(rng, lag, decel, splat):
     """The C++ kernel (services/planner/native): its cells are not exposed, so the reference
     is built wholly in float64 (cells, visibility, counts, splat, decay); queries within the
     splat's reach of a ray point that lies within float32 rounding of a cell boundary are
     left out (and of the rest of its ray, where the two cells differ in blocking it). The
     paper's 9 x 9 splat takes the kernel's compile-time path, 7 x 7 its general one."""
-    vp = dataclasses.replace(VP, lag_steps=lag, stop_decel_mps2=decel, splat_size=splat,
+    vp = dataclasses.replace(VP, lag_steps=lag, reaction=decel, splat_size=splat,
                              backend="native")
     mean, variance, states, got, rows, cols = solve_random_problem(vp, rng)
     seen, doubtful = [], np.zeros(mean.shape, bool)

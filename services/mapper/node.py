@@ -25,10 +25,11 @@ log = logging.getLogger(__name__)
 def main(cfg: Config, instance: str = "0", stop: threading.Event | None = None,
          bus: Transport | None = None) -> None:
     stop = stop or threading.Event()
-    p = protocol.MapperProtocolParams.from_config(cfg, scenario_of(cfg).origin)
+    scn = scenario_of(cfg)
+    p = protocol.MapperProtocolParams.from_config(cfg, scn.origin)
     sv = cfg.supervision
     with Node(bus or cfg.bus, cfg.episode.vehicle, "mapper", instance, cfg.to_dict(),
-              sv.heartbeat_period_s, sv.heartbeat_deadline_s) as node:
+              sv.heartbeat_period_s, sv.heartbeat_deadline_s, world=scn.digest) as node:
         frames = node.subscribe("depth", Depth, maxlen=64 if p.lockstep else 1)
         map_pub = node.publisher("map", Map, drop=not p.lockstep)
         node.hold("map", lambda: map_pub.latest)

@@ -50,6 +50,7 @@ class PlannerParams:
     noise_std: tuple[float, float]     # delta, f_xt
     noise_correlation: float           # rho of the AR(1) noise along the horizon; 0 = white
     brake_samples: int                 # samples replaced by full braking (0: the paper's MPPI)
+    swerve_samples: int                # ... and by full-lock swerves (0: the paper's MPPI)
     rollouts_published: int
     rollout_kernel: str                # auto | jax | native (services/planner/native)
     threads: int                       # native kernels' threads; 0 = this process's cores
@@ -64,6 +65,7 @@ class PlannerParams:
         return cls(p.controller, p.samples, p.horizon, p.dt_s, p.substeps, p.iterations,
                    p.temperature, (p.noise_steer_rad, p.noise_force_n), p.noise_correlation,
                    min(p.brake_samples, p.samples - 1),
+                   min(p.swerve_samples, max(0, p.samples - 1 - p.brake_samples)),
                    min(p.rollouts_published, p.samples), p.rollout_kernel, p.va_threads,
                    cfg.vehicle,
                    ControlLimits.from_config(cfg.vehicle), CostParams.from_config(cfg),
@@ -223,15 +225,32 @@ def brake_sequences(params: PlannerParams, nominal: jax.Array) -> jax.Array:
     return jnp.stack([steer, force], axis=-1)
 
 
+def swerve_sequences(params: PlannerParams, nominal: jax.Array) -> jax.Array:
+    """(W, N, 2) swerves: the steering limit held over the whole horizon (reached at the
+    steering-rate limit), alternately left and right, the first of each side at the
+    nominal's force, the next at half of it, ...; the way round an obstacle that appears
+    too late to stop for, which white steering noise (0.15 rad a step, flipping sign
+    against the rate limit) almost never holds (docs/planner.md)."""
+    w = params.swerve_samples
+    side = jnp.where(jnp.arange(w) % 2 == 0, 1.0, -1.0).astype(jnp.float32)
+    scale = (0.5 ** (jnp.arange(w) // 2)).astype(jnp.float32)
+    steer = jnp.broadcast_to(side[:, None] * params.limits.hi[0], (w, nominal.shape[0]))
+    force = scale[:, None] * nominal[None, :, 1]
+    return jnp.stack([steer, force], axis=-1)
+
+
 def _iteration(params: PlannerParams, state: PlannerState, x0, u_prev, goal, m: MapView):
     key, sub, mc = jax.random.split(state.key, 3)
     k = params.samples
     eps = sample_noise(params, sub)
     eps = eps.at[0].set(0.0)                          # sample 0: the nominal itself
     candidates = state.nominal[None] + eps
-    if params.brake_samples:                          # samples 1 .. B: full braking
-        candidates = candidates.at[1:1 + params.brake_samples].set(
-            brake_sequences(params, state.nominal))
+    b = params.brake_samples
+    if b:                                             # samples 1 .. B: full braking
+        candidates = candidates.at[1:1 + b].set(brake_sequences(params, state.nominal))
+    if params.swerve_samples:                         # then W swerves
+        candidates = candidates.at[1 + b:1 + b + params.swerve_samples].set(
+            swerve_sequences(params, state.nominal))
     states, applied, xdots = rollouts(params, x0, u_prev, candidates)
 
     qvar, expected = surface_terms(params, m, states)

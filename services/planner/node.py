@@ -46,11 +46,12 @@ def main(cfg: Config, instance: str = "0", stop: threading.Event | None = None,
          take_over_after_s: float = 0.0, retire: bool = True,
          take_over_at_s: float = 0.0) -> str:
     stop = stop or threading.Event()
-    p = protocol.PlannerProtocolParams.from_config(cfg, scenario_of(cfg))
+    scn = scenario_of(cfg)
+    p = protocol.PlannerProtocolParams.from_config(cfg, scn)
     sv = cfg.supervision
     floor = sv.planner_deadline_s
     with Node(bus or cfg.bus, cfg.episode.vehicle, "planner", instance, cfg.to_dict(),
-              floor / 5, floor, sv.heartbeat_deadline_s) as node:
+              floor / 5, floor, sv.heartbeat_deadline_s, world=scn.digest) as node:
         node.role = role
         fifo = p.lockstep
         states = node.subscribe("state", State, maxlen=4096 if fifo else 1)

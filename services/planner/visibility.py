@@ -15,10 +15,12 @@ makes uncertainty shrink).
 Causality: the variance the trajectory meets at step i uses only the points
 seen from poses 0 .. i-lag; lag = 1 is the paper's remark (what it could have
 seen before), a larger lag makes a point seen count only once there is time to
-act on it (`planner.visibility_lag_steps`, docs/planner.md). Optionally
-(`planner.visibility_stop_decel_mps2`, ours) a point counts only when it lies
-beyond the distance the pose needs to stop; nearer points still block their
-rays. A scan over the horizon carries a raw (unsplatted) count map: step i
+act on it (`planner.visibility_lag_steps`, docs/planner.md). With
+`planner.visibility_in_time` (ours; off, the paper's rule, by default) a point counts
+only when it lies beyond the distance the pose needs to react to it, from its speed
+with the vehicle's own limits: to stop, or to swerve one vehicle width aside,
+whichever is nearer (`services.plant.dynamics.Reaction`); nearer points still block
+their rays. A scan over the horizon carries a raw (unsplatted) count map: step i
 adds pose i-lag's visible points, then copies the 11 x 11 patch of raw counts
 around each of step i's footprint cells; one matmul after the horizon turns
 the patches into splatted counts at the five cells. Memory: one padded map per
@@ -44,7 +46,7 @@ import numpy as np
 
 from common.config import Config
 from services.planner import native
-from services.plant.dynamics import S
+from services.plant.dynamics import Reaction, S
 
 
 @dataclass(frozen=True)
@@ -61,8 +63,9 @@ class VisibilityParams:
     gamma: float               # 0.3 (Table II)
     mount_forward_m: float     # rays start at the camera
     lag_steps: int             # step i meets what poses 0 .. i - lag saw (1: the paper's)
-    stop_decel_mps2: float     # points nearer than V dt + V^2 / 2a do not count; 0 = off
-    react_s: float             # dt of that stopping distance (one control tick)
+    reaction: Reaction | None  # points nearer than the distance to react do not count; None = off
+    react_s: float             # the reaction time of that distance (one control tick)
+    react_lateral_m: float     # a swerve's sideways move: the planner's footprint width
     chunk: int                 # trajectories per chunk (memory bound); 0 = auto
     backend: str               # auto | jax | native (services/planner/native)
     threads: int               # native kernel threads; 0 = this process's cores
@@ -74,7 +77,9 @@ class VisibilityParams:
                    p.visibility_max_m, math.radians(cfg.sensor.hfov_deg), p.visibility_height_m,
                    p.count_value, p.splat_size, p.splat_sigma_cells, p.decay_gamma,
                    cfg.sensor.mount_forward_m, p.visibility_lag_steps,
-                   p.visibility_stop_decel_mps2, p.dt_s, p.va_chunk, p.va_kernel, p.va_threads)
+                   reaction_of(cfg),
+                   p.dt_s, cfg.vehicle.footprint_width_m + 2 * p.footprint_margin_m,
+                   p.va_chunk, p.va_kernel, p.va_threads)
 
     def ray_grid(self) -> np.ndarray:
         """Body-frame offsets (rays * points, 2) of the ray points from the CG."""
@@ -94,6 +99,18 @@ class VisibilityParams:
         x, y = np.meshgrid(o, o, indexing="xy")
         s2 = self.splat_sigma_cells ** 2
         return np.exp(-(x * x + y * y) / (2 * s2)) / (2 * np.pi * s2)
+
+
+def reaction_of(cfg: Config) -> Reaction | None:
+    """The in-time rule's reaction: the vehicle's own (`visibility_in_time`), or stopping
+    at the fixed `visibility_stop_decel_mps2` (the older form, which the alleyway's tables
+    of record ran with); None: the paper's rule."""
+    p = cfg.planner
+    if p.visibility_in_time:
+        return Reaction.from_config(cfg.vehicle)
+    if p.visibility_stop_decel_mps2 > 0.0:
+        return Reaction.braking_only(p.visibility_stop_decel_mps2)
+    return None
 
 
 def ray_cells(vp: VisibilityParams, origin: Any, resolution: float, states: Any
@@ -137,11 +154,11 @@ def visible_points(vp: VisibilityParams, mean: Any, origin: Any, resolution: flo
 def uncounted_points(vp: VisibilityParams, states: Any) -> Any:
     """How many of each ray's nearest points do not count, int32 (...) for poses
     `states` (..., 6): those nearer the camera than the distance to stop from the
-    pose's speed, V dt + V^2 / (2 a) (`stop_decel_mps2` a; 0 = off: none)."""
-    if vp.stop_decel_mps2 <= 0.0:
+    pose's speed (`reaction`; None = off: none)."""
+    if vp.reaction is None:
         return jnp.zeros(states.shape[:-1], jnp.int32)
     v = jnp.hypot(states[..., S.V], states[..., S.v])
-    stop = v * vp.react_s + v * v / (2.0 * vp.stop_decel_mps2)
+    stop = vp.reaction.distance(v, vp.react_s, vp.react_lateral_m, jnp)
     ranges = jnp.asarray(vp.ranges(), jnp.float32)
     return jnp.sum(ranges < stop[..., None], axis=-1).astype(jnp.int32)
 
@@ -224,7 +241,7 @@ def batched_decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, ori
 
     # poses 0 .. N-lag, read at steps lag .. N
     row, col, vis = visible_points(vp, mean, origin, resolution, states[:, :n_steps - lag + 1])
-    if vp.stop_decel_mps2 > 0.0:                                   # nearer points: not counted
+    if vp.reaction is not None:                                    # nearer points: not counted
         k_pt = jnp.tile(jnp.arange(vp.points), vp.rays)            # point index along its ray
         vis = vis & (k_pt >= skip[:, :n_steps - lag + 1, None])
     flat = jnp.where(vis, (row + pad) * wp + col + pad, hp * wp)   # unseen: dropped

@@ -58,6 +58,60 @@ class ControlLimits:
                    (v.steer_rate_max_radps, v.force_rate_max_nps))
 
 
+@dataclass(frozen=True)
+class Reaction:
+    """How the model gets out of the way of something ahead, from its own limits: full
+    braking (the brake limit over the mass; drag and rolling resistance, which only help,
+    left out) after the force's ramp at its rate limit; or a swerve at the tyres' peak
+    lateral acceleration (D g) after the steering's ramp, at its rate limit, to the angle
+    that asks for it (the kinematic bicycle's)."""
+    decel_mps2: float
+    ramp_s: float
+    lateral_accel_mps2: float
+    wheelbase_m: float
+    steer_max_rad: float
+    steer_rate_radps: float
+
+    @classmethod
+    def braking_only(cls, decel_mps2: float) -> Reaction:
+        """Stopping at a given deceleration, at once (no ramp), no swerve."""
+        return cls(decel_mps2, 0.0, 0.0, 1.0, 0.0, 1.0)
+
+    @classmethod
+    def from_config(cls, v: VehicleConfig) -> Reaction:
+        return cls(-v.force_min_n / v.mass_kg, -v.force_min_n / v.force_rate_max_nps,
+                   v.pacejka_d * v.gravity, v.lf_m + v.lr_m, v.steer_max_rad,
+                   v.steer_rate_max_radps)
+
+    def stopping(self, v: Any, react_s: float, xp: Any = np) -> Any:
+        """Travel from speed `v` (arrays ok) to standing still on flat ground: `react_s` at
+        v before the command changes, the force ramping to the brake limit, then the limit."""
+        a, ramp = self.decel_mps2, self.ramp_s
+        v = xp.maximum(v, 0.0)
+        # stops during the ramp (v <= a ramp / 2): v = a t^2 / 2 ramp
+        t = xp.sqrt(2.0 * v * ramp / a)
+        in_ramp = v * t - a * t ** 3 / (6.0 * ramp)
+        v1 = v - a * ramp / 2.0
+        after = v * ramp - a * ramp ** 2 / 6.0 + v1 * v1 / (2.0 * a)
+        return v * react_s + xp.where(v <= a * ramp / 2.0, in_ramp, after)
+
+    def swerving(self, v: Any, lateral_m: float, react_s: float, xp: Any = np) -> Any:
+        """Travel from speed `v` (arrays ok) while the vehicle moves `lateral_m` sideways."""
+        a = self.lateral_accel_mps2
+        v = xp.maximum(v, 0.0)
+        steer = xp.minimum(self.steer_max_rad,
+                           xp.arctan(a * self.wheelbase_m / xp.maximum(v * v, 1e-6)))
+        lead = react_s + steer / self.steer_rate_radps
+        return v * (lead + float(np.sqrt(2.0 * max(lateral_m, 0.0) / a)))
+
+    def distance(self, v: Any, react_s: float, lateral_m: float, xp: Any = np) -> Any:
+        """The nearer of stopping and swerving `lateral_m` aside: what still leaves room to
+        react to something seen this far ahead (stopping alone without a lateral limit)."""
+        if self.lateral_accel_mps2 <= 0.0:
+            return self.stopping(v, react_s, xp)
+        return xp.minimum(self.stopping(v, react_s, xp), self.swerving(v, lateral_m, react_s, xp))
+
+
 def clamp_control(u: Any, u_prev: Any, limits: ControlLimits, dt: float, xp: Any = np) -> Any:
     """The control actually applied: within bounds and within rate * dt of `u_prev`."""
     lo, hi = xp.asarray(limits.lo), xp.asarray(limits.hi)

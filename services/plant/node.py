@@ -60,7 +60,7 @@ def main(cfg: Config, instance: str = "0", stop: threading.Event | None = None,
     p = protocol.PlantProtocolParams.from_config(cfg, core.PlantParams.from_config(cfg, scenario))
     sv = cfg.supervision
     with Node(bus or cfg.bus, cfg.episode.vehicle, "plant", instance, cfg.to_dict(),
-              sv.heartbeat_period_s, sv.heartbeat_deadline_s) as node:
+              sv.heartbeat_period_s, sv.heartbeat_deadline_s, world=scenario.digest) as node:
         drop = not p.lockstep
         tick_hz = 1.0 / p.sim.tick_s
         pubs = {"state": node.publisher("state", State, drop=drop,

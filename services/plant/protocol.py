@@ -48,7 +48,7 @@ from common.bus import topic_key
 from common.config import Config
 from common.messages import Cmd, Handover, State
 from common.protocol import EPS, NEW, REPEAT, Order, Out, accept, check, on_tick, ref
-from common.supervision import Watch, alive, is_alive, newest
+from common.supervision import Watch, alive, is_alive, newest, other_world
 from services.plant import core
 from services.plant.dynamics import S
 
@@ -201,6 +201,8 @@ def on_cmd(p: PlantProtocolParams, run: PlantRun, cmd: Cmd, wall: float,
     h, a = cmd.header, run.authority
     if h.source != a.source:
         return run, "not the authority", ()
+    if other_world(newest(watch, h.source), p.sim.scenario.digest):
+        return run, "another scenario (its heartbeat's digest differs)", ()
     if a.boot and h.boot < a.boot:
         return run, "superseded boot", ()
     verdict = check(run.order, h, wall, math.inf, False)

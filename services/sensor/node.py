@@ -28,7 +28,7 @@ def main(cfg: Config, instance: str = "0", stop: threading.Event | None = None,
     p = protocol.SensorParams.from_config(cfg, scn)
     sv = cfg.supervision
     with Node(bus or cfg.bus, cfg.episode.vehicle, "sensor", instance, cfg.to_dict(),
-              sv.heartbeat_period_s, sv.heartbeat_deadline_s) as node:
+              sv.heartbeat_period_s, sv.heartbeat_deadline_s, world=scn.digest) as node:
         states = node.subscribe("state", State, maxlen=1024 if p.lockstep else 1)
         depth_pub = node.publisher("depth", Depth, drop=not p.lockstep)
         core.render(p.camera, scn.heightmap, scn.origin, scn.resolution,   # compile first

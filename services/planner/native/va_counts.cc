@@ -9,7 +9,7 @@
 // splatted counts C, and the variance met there is the map's variance at the
 // query cell times exp(-gamma C). Each ray is marched from its nearest point and
 // stops at its first blocker, which is itself seen; a pose's `skip` nearest points
-// of every ray block it but do not count (`planner.visibility_stop_decel_mps2`).
+// of every ray block it but do not count (`planner.visibility_in_time`).
 // After each trajectory the box of cells its patches read (below), where all its counts lie,
 // is set back to zero, so one map per thread serves every trajectory. The mean is read from
 // a padded copy laid out like the count map, so one index serves both.

@@ -1,0 +1,174 @@
+"""Scenarios are data: files round-trip, bad files are clear errors, generated worlds are
+reproducible and feasible, and every service must run the plant's world."""
+
+import math
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from common.config import ConfigError, load_config
+from common.messages import Cmd, Header, Heartbeat
+from common.scenarios import (
+    BENCHMARK_DIR,
+    BUILTINS,
+    ScenarioError,
+    build,
+    build_scenario,
+    load_spec,
+    parse_spec,
+    save_spec,
+    spec_of,
+    spec_toml,
+)
+from common.supervision import REFUSED_EXIT, Watch, on_beat
+
+CFG = load_config()
+SET_FILES = sorted(BENCHMARK_DIR.glob("*/*.toml"))
+
+
+@pytest.mark.parametrize("name", sorted(BUILTINS))
+def test_a_builtin_round_trips_through_its_file(name, tmp_path):
+    spec = spec_of(name)
+    path = save_spec(spec, tmp_path / f"{name}.toml")
+    again = load_spec(path)
+    assert spec_toml(again) == spec_toml(spec)
+    a, b = build_scenario(name, 2), build_scenario(str(path), 2)
+    assert a.heightmap.tobytes() == b.heightmap.tobytes()
+    assert a.terrain.tobytes() == b.terrain.tobytes()
+    assert (a.start, a.goal, a.obstacles) == (b.start, b.goal, b.obstacles)
+    assert a.digest == b.digest
+    assert build_scenario(name, 3).digest != a.digest        # the terrain seed is in it
+
+
+def test_the_benchmark_set_is_split_in_halves_and_every_file_loads():
+    tune = [p for p in SET_FILES if p.parent.name == "tune"]
+    held = [p for p in SET_FILES if p.parent.name == "heldout"]
+    assert len(tune) == len(held) >= 30
+    kinds = {load_spec(p).kind for p in SET_FILES}
+    assert len(kinds) >= 4
+    for p in SET_FILES:
+        spec = load_spec(p)
+        assert spec_toml(parse_spec(__import__("tomllib").loads(p.read_text()))) == p.read_text()
+        assert any(o.hidden for o in spec.obstacles)
+        assert spec.generator["seed"] % 2 == (1 if p.parent.name == "tune" else 0)
+
+
+GOOD = spec_toml(spec_of("alleyway"))
+
+
+@pytest.mark.parametrize(("edit", "message"), [
+    (lambda t: t.replace("format = 1", "format = 7"), "format 7"),
+    (lambda t: t.replace("[start]\nx = 12.0", "[start]\nx = 120.0"), "off the 80.0 m map"),
+    (lambda t: t.replace("radius = 1.0", "radius = nan", 1), "radius: expected a finite"),
+    (lambda t: t.replace("radius = 1.0", "radius = -1.0", 1), "radius: must be > 0"),
+    (lambda t: t.replace("height = 3.0", 'height = "tall"', 1), "height: expected a finite"),
+    (lambda t: t.replace("hidden = true", "hiden = true", 1), "unknown key(s) hiden"),
+    (lambda t: t.replace('kind = "box"', 'kind = "sphere"', 1), "one of cylinder, box"),
+    (lambda t: t.replace("[goal]\nx = 62.0\n", "[goal]\n"), "goal: missing 'x'"),
+    (lambda t: t[:len(t) // 2], "not valid TOML"),
+    (lambda t: t.replace('kind = "waves"', 'kind = "heightmap"'), "needs heightmap"),
+])
+def test_a_bad_scenario_file_is_a_clear_error(tmp_path, edit, message):
+    path = tmp_path / "bad.toml"
+    path.write_text(edit(GOOD))
+    with pytest.raises(ScenarioError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        load_spec(path)
+    with pytest.raises(ConfigError, match="episode.scenario"):
+        load_config(overrides=[f'episode.scenario="{path}"'])
+
+
+def test_a_missing_file_or_unknown_name_is_a_config_error(tmp_path):
+    for bad in (str(tmp_path / "nowhere.toml"), "moon-base"):
+        with pytest.raises(ConfigError, match="episode.scenario"):
+            load_config(overrides=[f'episode.scenario="{bad}"'])
+    with pytest.raises(ConfigError, match="episode.layout"):
+        load_config(overrides=[f'episode.scenario="{SET_FILES[0]}"', "episode.layout=3"])
+
+
+def test_a_heightmap_beside_the_file_is_the_terrain_resampled_to_the_grid(tmp_path):
+    rng = np.random.default_rng(7)
+    z = rng.uniform(-0.5, 0.5, (200, 200))                 # 0.4 m cells over 80 m
+    np.save(tmp_path / "ground.npy", z)
+    text = GOOD.replace('[terrain]\nkind = "waves"\nseed = 872',
+                        '[terrain]\nkind = "heightmap"\nheightmap = "ground.npy"\n'
+                        'resolution_m = 0.4')
+    (tmp_path / "w.toml").write_text(text)
+    scn = build(load_spec(tmp_path / "w.toml"), 0, 0.2)
+    assert scn.terrain.shape == (400, 400)
+    ref = cv2.resize(z, (400, 400), interpolation=cv2.INTER_LINEAR)
+    np.testing.assert_allclose(scn.terrain, ref, atol=1e-6)
+    # a 16-bit image: row 0 is the north edge, pixel values span height_min_m .. height_max_m
+    img = np.zeros((400, 400), np.uint16)
+    img[0, :] = 65535
+    cv2.imwrite(str(tmp_path / "ground.png"), img)
+    text = GOOD.replace('[terrain]\nkind = "waves"\nseed = 872',
+                        '[terrain]\nkind = "heightmap"\nheightmap = "ground.png"\n'
+                        'height_min_m = -1.0\nheight_max_m = 2.0')
+    (tmp_path / "p.toml").write_text(text)
+    scn = build(load_spec(tmp_path / "p.toml"), 0, 0.2)
+    assert scn.terrain[-1, 0] == pytest.approx(2.0) and scn.terrain[0, 0] == pytest.approx(-1.0)
+    (tmp_path / "ground.npy").write_bytes(b"\x93NUMPY truncated")
+    with pytest.raises(ScenarioError, match="cannot read the heightmap"):
+        build(load_spec(tmp_path / "w.toml"), 0, 0.2)
+
+
+def test_a_generated_world_is_reproducible_from_its_seed_and_feasible():
+    from deploy.generate import generate, reachable
+    a = generate(CFG, "corner", 2)
+    b = generate(CFG, "corner", 2)
+    assert spec_toml(a) == spec_toml(b)
+    scn = build(a, 0, 0.2)
+    assert math.isfinite(reachable(scn))
+    assert a.generator["prescient_time_s"] > 0                 # the prescient drive succeeded
+    hidden = [o for o in a.obstacles if o.hidden]
+    assert hidden and all(math.hypot(o.x - a.start.x, o.y - a.start.y) > 15 for o in hidden)
+    assert spec_toml(generate(CFG, "corner", 3)) != spec_toml(a)
+
+
+def test_the_plant_refuses_commands_from_a_planner_that_runs_another_world():
+    from deploy.runner import Cores
+    from services.plant import protocol
+    cores = Cores.from_config(CFG)
+    p = cores.plant
+    run, _ = protocol.start(p, 1, 0.0)
+    h = Header(0, 0.0, 0.0, "planner/0", (), 5, 1)
+    controls = np.zeros((CFG.planner.horizon, 2), np.float32)
+    cmd = Cmd(h, 0.0, CFG.planner.dt_s, controls)
+
+    def beat(world):
+        return on_beat(Watch(), Heartbeat(Header(0, 0.0, 0.0, "planner/0", (), 5, 1), "ready",
+                                          "active", 0.15, "", world), 0.0)
+    _, verdict, _ = protocol.on_cmd(p, run, cmd, 0.0, beat("0123456789abcdef"))
+    assert verdict.startswith("another scenario")
+    _, verdict, _ = protocol.on_cmd(p, run, cmd, 0.0, beat(cores.scenario.digest))
+    assert verdict == "new"
+
+
+@pytest.mark.integration
+def test_a_service_started_with_another_scenario_than_the_plants_is_refused(tmp_path):
+    from deploy.faults import Pipeline
+    over = ["planner.samples=64", "episode.timeout_s=2.0", f'episode.scenario="{SET_FILES[0]}"']
+    with Pipeline(over, tmp_path) as b:
+        b.service("plant")
+        sensor = b.service("sensor", extra=['episode.scenario="open-field"'])
+        assert sensor.p.wait(60) == REFUSED_EXIT
+        log = sensor.tail(5000)
+        assert "refused" in log and "the plant (plant/0)" in log
+        b.close()
+
+
+def test_the_cli_exports_generates_and_describes(tmp_path):
+    out = tmp_path / "alley.toml"
+    r = subprocess.run([sys.executable, "-m", "deploy.cli", "scenario", "export", "--scenario",
+                        "alleyway", "--out", str(out)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert out.read_text() == GOOD
+    r = subprocess.run([sys.executable, "-m", "deploy.cli", "scenario", "--scenario", str(out)],
+                       capture_output=True, text=True)
+    assert r.returncode == 0 and '"digest"' in r.stdout
+    r = subprocess.run([sys.executable, "-m", "deploy.cli", "scenario", "generate", "--kind",
+                        "volcano"], capture_output=True, text=True)
+    assert r.returncode == 2 and "unknown kind 'volcano'" in r.stderr
