@@ -250,8 +250,8 @@ def generate(cfg: Config, kind: str, seed: int, drive: bool = True) -> ScenarioS
         n = len(hidden)
         spec = ScenarioSpec(
             base.name, f"{d.description} {n} obstacle{'s' if n > 1 else ''} behind the "
-            "occluder stand on the fast line, seen too late to stop for a vehicle that takes "
-            "the unseen ground for free.", d.start, d.goal, d.occluders + hidden, base.terrain,
+            f"occluder stand{'' if n > 1 else 's'} on the fast line, seen too late to stop for "
+            "a vehicle that takes the unseen ground for free.", d.start, d.goal, d.occluders + hidden, base.terrain,
             kind=kind, generator={"kind": kind, "seed": seed, "attempt": attempt,
                                   "probe_time_s": round(probe.time_to_goal_s, 2)})
         free = reachable(build(spec, 0, cfg.mapper.resolution_m))
@@ -291,8 +291,9 @@ def write_set(cfg: Config, out: Path, per_kind: int, kinds: str | None = None,
     for k in chosen:
         if k not in _DRAW:
             raise GenerateError(f"unknown kind {k!r}; choose one of {', '.join(KINDS)}")
-    todo = [(cfg, k, s, str(set_path(out, k, s))) for k in chosen
-            for s in range(1, per_kind + 1) if not set_path(out, k, s).exists()]
+    # seed by seed, every kind in turn: a set stopped early still has every kind
+    todo = [(cfg, k, s, str(set_path(out, k, s))) for s in range(1, per_kind + 1)
+            for k in chosen if not set_path(out, k, s).exists()]
     if jobs <= 1:
         done = [_draw_one(j) for j in todo]
     else:

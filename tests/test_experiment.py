@@ -181,3 +181,36 @@ def test_a_stopped_experiment_stops_its_workers_and_keeps_its_runs(tmp_path, sig
         assert proc.returncode == 130 and "interrupted" in err, err[-2000:]
     kept = read_runs(out / "runs.jsonl")
     assert 1 <= len(kept) < 100 and all(x["outcome"] in OUTCOMES for x in kept)
+
+
+def test_fisher_exact_matches_scipys_on_known_tables():
+    from deploy.experiment import fisher_exact
+    # scipy.stats.fisher_exact (two-sided) gives these
+    assert fisher_exact(0, 20, 12, 8) == pytest.approx(4.5095150768120733e-05, rel=1e-12)
+    assert fisher_exact(3, 17, 5, 15) == pytest.approx(0.6947646947646948, rel=1e-12)
+    assert fisher_exact(5, 5, 5, 5) == pytest.approx(1.0)
+
+
+def test_summaries_by_kind_and_overall_pair_each_run_with_the_prescient_one():
+    from deploy.experiment import summarize, summary_markdown
+    runs = []
+    for world, kind in (("a.toml", "corner"), ("b.toml", "corner"), ("c.toml", "trees")):
+        for seed in (0, 1):
+            runs.append({"scenario": world, "kind": kind, "controller": "prescient",
+                         "samples": 400, "seed": seed, "outcome": "success",
+                         "time_to_goal_s": 10.0})
+            runs.append({"scenario": world, "kind": kind, "controller": "va", "samples": 400,
+                         "seed": seed, "outcome": "success" if seed == 0 else "collision",
+                         "time_to_goal_s": 12.0 if seed == 0 else None})
+    rows = {(r["kind"], r["controller"]): r for r in summarize(runs, "kind")}
+    assert rows["corner", "va"]["worlds"] == 2 and rows["corner", "va"]["runs"] == 4
+    assert rows["corner", "va"]["collision"] == 2
+    assert rows["corner", "va"]["ratio_to_prescient_median"] == pytest.approx(1.2)
+    assert rows["corner", "prescient"]["ratio_to_prescient_median"] is None
+    assert rows["corner", "va"]["collision_p"]["prescient"] == pytest.approx(
+        0.42857142857142855)                      # [[2, 2], [0, 4]]
+    (overall,) = [r for r in summarize(runs, "all") if r["controller"] == "va"]
+    assert overall["runs"] == 6 and overall["time_to_goal_median_s"] == 12.0
+    text, per = summary_markdown(runs)
+    assert "By kind:" in text and "| trees | va | 400 | 2 | 50 % | 50 % |" in text
+    assert set(per) == {"scenario", "kind", "all"}

@@ -59,6 +59,20 @@ def test_lockstep_is_bit_identical_across_runs_and_equals_the_in_process_runner(
     assert a[-1, 4] > ref.trajectory[0, 4] + 1.0      # it moved
 
 
+def test_the_bus_pipeline_runs_a_scenario_file_as_the_in_process_runner_does(tmp_path):
+    """Every service loads the same file (here a copy of a built-in's, moved): the same
+    trajectory as in-process, bit for bit."""
+    from common.scenarios import BUILTINS
+    world = tmp_path / "elsewhere.toml"
+    world.write_text(BUILTINS["open-field"][1].read_text())
+    over = [*SHORT[:2], f'episode.scenario="{world}"']
+    ref = run_episode(load_config(overrides=over))
+    got, ev = bus_episode(over)
+    assert ev.kind == ref.outcome
+    assert got.tobytes() == ref.trajectory.tobytes()
+    assert got[-1, 4] > got[0, 4] + 1.0               # it moved
+
+
 def test_vamppi_up_reaches_the_goal_and_prints_the_summary():
     r = subprocess.run([sys.executable, "-m", "deploy.cli", "up", "--scenario", "open-field",
                         "--samples", "256", "--clock", "lockstep", "--seed", "1"],
