@@ -40,7 +40,7 @@ from services.plant.dynamics import S
 
 KINDS = ("corner", "street", "trees", "hedge")
 CLEARANCE_M = 1.4       # the free way round: the footprint's half width and a margin
-ATTEMPTS = 20
+ATTEMPTS = 60
 FROM_START_M = 15.0     # hidden obstacles stand at least this far from the start
 CANDIDATES = 40         # places on the fast line tried for the hidden obstacles
 PROBE_SAMPLES = 400
@@ -277,15 +277,20 @@ def set_path(out: Path, kind: str, seed: int) -> Path:
 
 
 def _draw_one(job: tuple[Config, str, int, str]) -> str:
+    """The world's file, or the reason none could be drawn (a GenerateError's text)."""
     from common.scenarios import save_spec
     cfg, kind, seed, path = job
-    return str(save_spec(generate(cfg, kind, seed), path))
+    try:
+        return str(save_spec(generate(cfg, kind, seed), path))
+    except GenerateError as exc:
+        return f"! {exc}"
 
 
 def write_set(cfg: Config, out: Path, per_kind: int, kinds: str | None = None,
               jobs: int = 1) -> list[Path]:
     """The benchmark set: seeds 1 .. per_kind of every kind (or of `kinds`, comma-separated)
-    into out/tune (odd seeds) and out/heldout (even seeds); worlds already there are kept."""
+    into out/tune (odd seeds) and out/heldout (even seeds); worlds already there are kept.
+    A seed without a feasible world does not stop the others (GenerateError at the end)."""
     import multiprocessing
     chosen = KINDS if not kinds else tuple(k.strip() for k in kinds.split(","))
     for k in chosen:
@@ -299,4 +304,7 @@ def write_set(cfg: Config, out: Path, per_kind: int, kinds: str | None = None,
     else:
         with multiprocessing.get_context("spawn").Pool(jobs) as pool:
             done = pool.map(_draw_one, todo, chunksize=1)
+    failed = [d[2:] for d in done if d.startswith("! ")]
+    if failed:                      # the others are written: a rerun tries only these again
+        raise GenerateError("; ".join(failed))
     return [Path(p) for p in done]

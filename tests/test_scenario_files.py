@@ -49,7 +49,8 @@ def test_the_benchmark_set_is_split_in_halves_and_every_file_loads():
     import tomllib
     halves = {h: [load_spec(p) for p in SET_FILES if p.parent.name == h]
               for h in ("tune", "heldout")}
-    assert halves["tune"] and halves["heldout"]
+    assert len(halves["tune"]) == len(halves["heldout"]) >= 30
+    assert len({s.kind for s in halves["tune"]}) >= 4
     assert {s.kind for s in halves["tune"]} == {s.kind for s in halves["heldout"]}
     for p in SET_FILES:
         spec = load_spec(p)
