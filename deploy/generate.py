@@ -251,7 +251,8 @@ def generate(cfg: Config, kind: str, seed: int, drive: bool = True) -> ScenarioS
         spec = ScenarioSpec(
             base.name, f"{d.description} {n} obstacle{'s' if n > 1 else ''} behind the "
             f"occluder stand{'' if n > 1 else 's'} on the fast line, seen too late to stop for "
-            "a vehicle that takes the unseen ground for free.", d.start, d.goal, d.occluders + hidden, base.terrain,
+            "a vehicle that takes the unseen ground for free.", d.start, d.goal,
+            d.occluders + hidden, base.terrain,
             kind=kind, generator={"kind": kind, "seed": seed, "attempt": attempt,
                                   "probe_time_s": round(probe.time_to_goal_s, 2)})
         free = reachable(build(spec, 0, cfg.mapper.resolution_m))
