@@ -341,6 +341,7 @@ class Rogue:
         self._count: dict[str, int] = {}
         self._types = {t: MESSAGE_TYPES[f"vamppi.{t.capitalize()}"] for t in topics}
         self._lock = threading.Lock()
+        self._threads: list[threading.Thread] = []
         self.vehicle = vehicle
         self._subs = [self.session.declare_subscriber(
             topic_key(vehicle, t), lambda s, t=t: self._on(t, s.payload.to_bytes()))
@@ -358,7 +359,10 @@ class Rogue:
             self._first.setdefault(topic, msg)
             n = self._count[topic] = self._count.get(topic, 0) + 1
         if n == self.at * (5 if topic == "state" else 1):
-            threading.Thread(target=self._send, args=(topic, msg)).start()
+            th = threading.Thread(target=self._send, args=(topic, msg))
+            with self._lock:
+                self._threads.append(th)
+            th.start()
 
     def _boot(self, topic: str, msg: Any) -> int:
         first = self._first.get(topic)
@@ -373,6 +377,11 @@ class Rogue:
                 self.sent.append((topic, name))
 
     def close(self) -> None:
+        """Finish the hostile sends under way (`sent` is complete after this), then close."""
+        with self._lock:
+            threads = list(self._threads)
+        for th in threads:
+            th.join(10)
         self.session.close()
 
 

@@ -67,8 +67,8 @@ def test_hostile_messages_change_nothing_in_lockstep(reference, tmp_path):
         b.up()
         rogue = Rogue(b.endpoint, b.cfg.episode.vehicle, at=10)
         assert b.wait_outcome().kind == "timeout"
+        rogue.close()                        # joins its sends: `sent` is complete
         sent = list(rogue.sent)
-        rogue.close()
         got = b.trajectory()
         logs = {n: p.tail(200_000) for n, p in b.procs.items()}
     assert got.tobytes() == reference.tobytes()
@@ -132,8 +132,8 @@ def test_hostile_messages_do_not_stop_a_realtime_episode(tmp_path):
         b.up()
         rogue = Rogue(b.endpoint, b.cfg.episode.vehicle, at=30)
         ev = b.wait_outcome()
-        sent = list(rogue.sent)
         rogue.close()
+        sent = list(rogue.sent)
         logs = {n: p.tail(200_000) for n, p in b.procs.items()}
     assert ev.kind == "success" and len(sent) == 26
     rej = {r for text in logs.values() for r in rejections(text)}

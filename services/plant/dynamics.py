@@ -86,7 +86,7 @@ class Reaction:
     def stopping(self, v: Any, react_s: float, xp: Any = np) -> Any:
         """Travel from speed `v` (arrays ok) to standing still on flat ground: `react_s` at
         v before the command changes, the force ramping to the brake limit, then the limit."""
-        a, ramp = self.decel_mps2, self.ramp_s
+        a, ramp = self.decel_mps2, max(self.ramp_s, 1e-9)      # no ramp: a vanishing one
         v = xp.maximum(v, 0.0)
         # stops during the ramp (v <= a ramp / 2): v = a t^2 / 2 ramp
         t = xp.sqrt(2.0 * v * ramp / a)
