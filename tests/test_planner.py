@@ -393,7 +393,7 @@ def test_brake_samples_find_the_stop_that_random_samples_miss():
     goal = np.array([70.0, 40.0, 0.0])
     hit = {}
     for b in (0, 3):
-        params = dataclasses.replace(PP, brake_samples=b)
+        params = dataclasses.replace(PP, brake_samples=b, swerve_samples=0)
         qs = mppi.initial_state(params, 0)
         qs = qs._replace(nominal=jnp.tile(jnp.asarray([0.0, 3000.0], jnp.float32),
                                           (PP.horizon, 1)))

@@ -48,13 +48,14 @@ def reference_visibility(vp, mean, state, rows, cols, res):
 
 def reference_counted(vp, state, vis):
     """Of the visible points (rays, points), those that count: at least the float64
-    reaction distance from the camera (all of them without the in-time rule), in float64
-    (`Reaction.distance`; its stopping is checked against an integration in test_reveal,
-    its swerve in test_dynamics)."""
+    reaction distance from the footprint's front edge (all of them without the in-time
+    rule), in float64 (`Reaction.distance`; its stopping is checked against an
+    integration in test_reveal, its swerve in test_dynamics)."""
     if vp.reaction is None:
         return vis
     v = math.hypot(float(state[0]), float(state[1]))
     stop = float(vp.reaction.distance(np.float64(v), vp.react_s, vp.react_lateral_m))
+    stop += vp.react_ahead_m                   # measured from the front edge, not the camera
     return vis & (np.linspace(vp.ray_min_m, vp.ray_max_m, vp.points) >= stop)[None, :]
 
 

@@ -17,10 +17,10 @@ seen from poses 0 .. i-lag; lag = 1 is the paper's remark (what it could have
 seen before), a larger lag makes a point seen count only once there is time to
 act on it (`planner.visibility_lag_steps`, docs/planner.md). With
 `planner.visibility_in_time` (ours; off, the paper's rule, by default) a point counts
-only when it lies beyond the distance the pose needs to react to it, from its speed
-with the vehicle's own limits: to stop, or to swerve one vehicle width aside,
-whichever is nearer (`services.plant.dynamics.Reaction`); nearer points still block
-their rays. A scan over the horizon carries a raw (unsplatted) count map: step i
+only when the footprint's front edge lies farther from it than the pose needs to react
+to it from its speed, with the vehicle's own limits: to stop, or to swerve one vehicle
+width aside, whichever is nearer (`services.plant.dynamics.Reaction`); nearer points
+still block their rays. A scan over the horizon carries a raw (unsplatted) count map: step i
 adds pose i-lag's visible points, then copies the 11 x 11 patch of raw counts
 around each of step i's footprint cells; one matmul after the horizon turns
 the patches into splatted counts at the five cells. Memory: one padded map per
@@ -66,6 +66,8 @@ class VisibilityParams:
     reaction: Reaction | None  # points nearer than the distance to react do not count; None = off
     react_s: float             # the reaction time of that distance (one control tick)
     react_lateral_m: float     # a swerve's sideways move: the planner's footprint width
+    react_ahead_m: float       # the footprint's front edge ahead of the camera: a point this
+                               # much nearer than the reaction distance is already reached
     chunk: int                 # trajectories per chunk (memory bound); 0 = auto
     backend: str               # auto | jax | native (services/planner/native)
     threads: int               # native kernel threads; 0 = this process's cores
@@ -79,6 +81,8 @@ class VisibilityParams:
                    cfg.sensor.mount_forward_m, p.visibility_lag_steps,
                    reaction_of(cfg),
                    p.dt_s, cfg.vehicle.footprint_width_m + 2 * p.footprint_margin_m,
+                   cfg.vehicle.footprint_length_m / 2 + p.footprint_margin_m
+                   - cfg.sensor.mount_forward_m,
                    p.va_chunk, p.va_kernel, p.va_threads)
 
     def ray_grid(self) -> np.ndarray:
@@ -153,12 +157,12 @@ def visible_points(vp: VisibilityParams, mean: Any, origin: Any, resolution: flo
 
 def uncounted_points(vp: VisibilityParams, states: Any) -> Any:
     """How many of each ray's nearest points do not count, int32 (...) for poses
-    `states` (..., 6): those nearer the camera than the distance to stop from the
-    pose's speed (`reaction`; None = off: none)."""
+    `states` (..., 6): those the footprint's front edge is nearer to than the distance
+    to react from the pose's speed (`reaction`; None = off: none)."""
     if vp.reaction is None:
         return jnp.zeros(states.shape[:-1], jnp.int32)
     v = jnp.hypot(states[..., S.V], states[..., S.v])
-    stop = vp.reaction.distance(v, vp.react_s, vp.react_lateral_m, jnp)
+    stop = vp.reaction.distance(v, vp.react_s, vp.react_lateral_m, jnp) + vp.react_ahead_m
     ranges = jnp.asarray(vp.ranges(), jnp.float32)
     return jnp.sum(ranges < stop[..., None], axis=-1).astype(jnp.int32)
 
