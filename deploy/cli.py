@@ -34,13 +34,17 @@ from common.security import default_certs, with_identity
 from common.supervision import REFUSED_EXIT, RETIRED_EXIT
 
 
+def add_preset_arg(p: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    p.add_argument("--preset", help="a named set of parameters (common/presets: paper = the "
+                                    "paper's method), over --config and under --set")
+
+
 def add_config_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("configuration")
     g.add_argument("--config", help="TOML file merged over the defaults")
     g.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="override one parameter (repeatable)")
-    g.add_argument("--preset", help="a named set of parameters (common/presets: paper = the "
-                                    "paper's method), over --config and under --set")
+    add_preset_arg(g)
     g.add_argument("--scenario", help="episode.scenario: a built-in's name or a scenario file")
     g.add_argument("--controller", help="planner.controller")
     g.add_argument("--samples", type=int, help="planner.samples (K)")
@@ -634,6 +638,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--config", help="TOML file merged over the defaults")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
+    add_preset_arg(p)
     p.set_defaults(func=cmd_experiment)
 
     p = sub.add_parser("scenario", help="a scenario as JSON and its picture; its file; "
