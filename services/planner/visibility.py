@@ -16,7 +16,7 @@ Causality: the variance the trajectory meets at step i uses only the points
 seen from poses 0 .. i-lag; lag = 1 is the paper's remark (what it could have
 seen before), a larger lag makes a point seen count only once there is time to
 act on it (`planner.visibility_lag_steps`, docs/planner.md). With
-`planner.visibility_in_time` (ours; off, the paper's rule, by default) a point counts
+`planner.visibility_in_time` (ours, on by default; off is the paper's rule) a point counts
 only when the footprint's front edge lies farther from it than the pose needs to react
 to it from its speed, with the vehicle's own limits: to stop, or to swerve one vehicle
 width aside, whichever is nearer (`services.plant.dynamics.Reaction`); nearer points
