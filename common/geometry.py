@@ -71,3 +71,97 @@ def body_to_world(points: Any, x: Any, y: Any, yaw: Any, xp: Any = np) -> tuple[
     c, s = xp.cos(yaw), xp.sin(yaw)
     px, py = points[..., 0], points[..., 1]
     return x + c * px - s * py, y + s * px + c * py
+
+
+def turning_radius(wheelbase: float, steer_max: float) -> float:
+    """The tightest radius the kinematic bicycle can turn at: wheelbase / tan(steer limit)."""
+    return float(wheelbase / np.tan(steer_max))
+
+
+def _arc(a: Any, xp: Any) -> Any:
+    """A turning angle to [0, 2 pi), with the last 1e-4 rad folded to 0: a point dead
+    ahead must not cost a full circle because rounding put it a hair to the other side."""
+    a = a % (2.0 * xp.pi)
+    return xp.where(a > 2.0 * xp.pi - 1e-4, 0.0 * a, a)
+
+
+def _turn_then_straight(px: Any, py: Any, r: float, xp: Any) -> Any:
+    """Length of a left arc then a straight line to the body-frame point (px, py), inf
+    where the point lies inside the left turning circle (centre (0, r))."""
+    qx, qy = px, py - r
+    d2 = qx * qx + qy * qy
+    t = xp.sqrt(xp.maximum(d2 - r * r, 0.0))
+    theta = _arc(xp.arctan2(qy, qx) - xp.arctan2(t, xp.zeros_like(t) + r) + xp.pi / 2.0, xp)
+    return xp.where(d2 >= r * r, r * theta + t, xp.inf)
+
+
+def _turn_then_turn(px: Any, py: Any, r: float, reach: float, xp: Any, n: int = 17) -> Any:
+    """Length of a right arc then a left arc until it first comes within `reach` of
+    (px, py) (`reach` = 0: until it reaches the point), inf where no such path exists.
+    The second arc's centre lies 2 r from the right circle's centre (0, -r) and, for
+    it to enter the disk, between r - reach and r + reach from the point: `n` distances
+    across that span, each with its two centres, and the shortest of them."""
+    qx, qy = px, py + r
+    q = xp.maximum(xp.sqrt(qx * qx + qy * qy), 1e-9)
+    gamma = xp.arctan2(qx, qy)
+    tau_x, tau_y = px, py
+    best = xp.inf + 0.0 * px
+    for rho in (np.linspace(r - reach, r + reach, n) if reach > 0.0 else (r,)):
+        k = (q * q + 4.0 * r * r - rho * rho) / (4.0 * r * q)
+        spread = xp.arccos(xp.clip(k, -1.0, 1.0))
+        cos_d = min(1.0, (r * r + rho * rho - reach * reach) / (2.0 * r * rho))
+        enter = float(np.arccos(cos_d))
+        for a in (_arc(gamma - spread, xp), _arc(gamma + spread, xp)):
+            sa, ca = xp.sin(a), xp.cos(a)
+            cx, cy = 2.0 * r * sa, -r + 2.0 * r * ca           # centre of the second arc
+            tau = xp.arctan2(tau_y - cy, tau_x - cx) - xp.arctan2(-ca, -sa)
+            b = xp.minimum(_arc(tau - enter, xp), _arc(tau + enter, xp))
+            best = xp.where(xp.abs(k) <= 1.0, xp.minimum(best, r * (a + b)), best)
+    return best
+
+
+def _arc_into(px: Any, py: Any, r: float, reach: float, xp: Any) -> Any:
+    """Length of a left arc alone until it first comes within `reach` of (px, py), inf
+    where the left turning circle misses that disk."""
+    qx, qy = px, py - r
+    dc = xp.maximum(xp.sqrt(qx * qx + qy * qy), 1e-9)
+    cos_d = (r * r + dc * dc - reach * reach) / (2.0 * r * dc)
+    spread = xp.arccos(xp.clip(cos_d, -1.0, 1.0))
+    phi = xp.arctan2(qy, qx) + xp.pi / 2.0
+    theta = xp.minimum(_arc(phi - spread, xp), _arc(phi + spread, xp))
+    return xp.where(xp.abs(cos_d) <= 1.0, r * theta, xp.inf)
+
+
+def dubins_to_point(dx: Any, dy: Any, yaw: Any, radius: float, xp: Any = np) -> Any:
+    """Length of the shortest forward path with curvature at most 1 / `radius` from a pose
+    heading `yaw` to the point `(dx, dy)` away from it (world frame), any final heading:
+    the least of the four paths that can be shortest (Bui, Soueres, Boissonnat and
+    Laumond 1994): a left or right arc then a straight line, or an arc then an arc the
+    other way. Equals the straight-line distance for a point dead ahead."""
+    c, s = xp.cos(yaw), xp.sin(yaw)
+    px, py = c * dx + s * dy, c * dy - s * dx
+    return xp.minimum(xp.minimum(_turn_then_straight(px, py, radius, xp),
+                                 _turn_then_straight(px, -py, radius, xp)),
+                      xp.minimum(_turn_then_turn(px, py, radius, 0.0, xp),
+                                 _turn_then_turn(px, -py, radius, 0.0, xp)))
+
+
+def goal_path_length(dx: Any, dy: Any, yaw: Any, radius: float, reach: float,
+                     xp: Any = np) -> Any:
+    """The distance to a goal `(dx, dy)` away for a vehicle heading `yaw` that cannot turn
+    tighter than `radius`: the length of a forward path into the goal's circle of radius
+    `reach`, plus `reach`, so that it is the straight-line distance for a goal dead ahead
+    and never less than it. The path is the shortest of: an arc alone, or the shortest
+    path to the goal's centre (`dubins_to_point`) cut where it enters the circle (the
+    last `reach` of a straight, the last chord `reach` of an arc). Inside the circle it
+    is the straight-line distance."""
+    c, s = xp.cos(yaw), xp.sin(yaw)
+    px, py = c * dx + s * dy, c * dy - s * dx
+    straight = xp.minimum(_turn_then_straight(px, py, radius, xp),
+                          _turn_then_straight(px, -py, radius, xp)) - reach
+    turns = xp.minimum(_turn_then_turn(px, py, radius, reach, xp),
+                       _turn_then_turn(px, -py, radius, reach, xp))
+    arcs = xp.minimum(_arc_into(px, py, radius, reach, xp), _arc_into(px, -py, radius, reach, xp))
+    path = xp.maximum(xp.minimum(xp.minimum(straight, turns), arcs), 0.0)
+    euclid = xp.sqrt(px * px + py * py)
+    return xp.where(euclid <= reach, euclid, xp.maximum(path + reach, euclid))

@@ -32,19 +32,27 @@ import numpy as np
 
 from common.config import Config
 from services.planner import mppi
-from services.planner.costs import CostParams, MapView, per_metre_weight, rollout_cost
+from services.planner.costs import (
+    CostParams,
+    MapView,
+    goal_distance,
+    per_metre_weight,
+    rollout_cost,
+)
 from services.plant.dynamics import S, clamp_control, derivatives, integrate
 
 
 class TorchOps:
     """The array namespace the dynamics are written against (`xp`), on torch."""
     pi = math.pi
+    inf = math.inf
 
     def __init__(self, torch: Any, dtype: Any, device: Any):
         self.t, self.dtype, self.device = torch, dtype, device
         for name, fn in (("tanh", torch.tanh), ("tan", torch.tan), ("arctan", torch.atan),
                          ("arctan2", torch.atan2), ("sin", torch.sin), ("cos", torch.cos),
-                         ("abs", torch.abs), ("sqrt", torch.sqrt)):
+                         ("abs", torch.abs), ("sqrt", torch.sqrt), ("arccos", torch.acos),
+                         ("where", torch.where), ("zeros_like", torch.zeros_like)):
             setattr(self, name, fn)
 
     def asarray(self, a: Any) -> Any:
@@ -72,7 +80,7 @@ def torch_cost(torch: Any, c: CostParams, states: Any, xdots: Any, goal: Any, me
     """rollout_cost's six terms summed, zero variance, for a batch: states (K, N+1, 6),
     dx/dt (K, N, 6); goal (3,) and origin (2,) tensors, mean (H, W)."""
     n = c.horizon
-    d = torch.hypot(states[..., S.X] - goal[0], states[..., S.Y] - goal[1])
+    d = goal_distance(c, states, goal, TorchOps(torch, states.dtype, states.device))
     V = states[..., S.V]
     i2, i3 = int(round(2.0 / c.dt)), int(round(3.0 / c.dt))
     vf = c.time_speed_floor

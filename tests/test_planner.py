@@ -86,7 +86,8 @@ def flat_map(n=400):
 
 
 P_POINTS = CFG.planner.footprint_arrays * CFG.planner.footprint_points
-ZERO_VAR = jnp.zeros((PP.horizon + 1, 5 * P_POINTS), jnp.float32)
+T_PRICED = PP.horizon + 1 + PP.cost.stop_poses          # the rollout's poses, then the stop's
+ZERO_VAR = jnp.zeros((T_PRICED, 5 * P_POINTS), jnp.float32)
 
 
 def test_surface_cost_sees_a_wall_and_nothing_on_flat_ground():
@@ -120,7 +121,7 @@ def test_a_middle_array_and_a_margin_see_a_corner_at_the_vehicles_side():
                              "planner.footprint_margin_m": margin})
         cp = mppi.PlannerParams.from_config(cfg).cost
         post = MapView(m.mean.at[post_rows, 199:202].set(2.0), m.variance, m.origin, 0.2)
-        zero = jnp.zeros((PP.horizon + 1, 5 * arrays * 5), jnp.float32)
+        zero = jnp.zeros((T_PRICED, 5 * arrays * 5), jnp.float32)
         return float(rollout_cost(cp, states, xd, goal, post, zero)[2])
 
     touching = slice(204, 207)           # y 40.8-41.4: into the left side (y <= 41.1)
@@ -174,6 +175,7 @@ def test_surface_cost_per_metre_against_a_loop(rng):
     ref_m = 0.5
     cp = mppi.PlannerParams.from_config(
         CFG.replace(**{"planner.surface_distance_m": ref_m})).cost
+    loop = dataclasses.replace(cp, stop_poses=0)     # the loop's poses are the rollout's
     n1, p = PP.horizon + 1, P_POINTS
     goal = jnp.asarray([60.0, 40.0, 0.0])
     m = flat_map()
@@ -184,7 +186,7 @@ def test_surface_cost_per_metre_against_a_loop(rng):
         expected = (rng.uniform(0, 5, (n1, p)) * (rng.uniform(size=(n1, p)) < 0.2)
                     ).astype(np.float32)
         xd = jnp.zeros((PP.horizon, 6), jnp.float32)
-        got = float(rollout_cost(cp, jnp.asarray(states), xd, goal, m, None,
+        got = float(rollout_cost(loop, jnp.asarray(states), xd, goal, m, None,
                                  expected=jnp.asarray(expected))[2])
         want = cp.w_surface * sum(abs(float(states[i, S.V])) * PP.dt / ref_m
                                   * float(np.sum(expected[i], dtype=np.float64))
@@ -194,7 +196,7 @@ def test_surface_cost_per_metre_against_a_loop(rng):
     # standing on fog: the plain sum charges every step, per metre nothing
     still = jnp.tile(jnp.asarray([0.0, 0, 0, 20.0, 40.0, 0.0], jnp.float32), (n1, 1))
     fog = MapView(m.mean, jnp.full_like(m.variance, 3.0), m.origin, m.resolution)
-    fog_var = jnp.full((n1, 5 * p), 3.0, jnp.float32)
+    fog_var = jnp.full((T_PRICED, 5 * p), 3.0, jnp.float32)
     xd = jnp.zeros((PP.horizon, 6), jnp.float32)
     assert float(rollout_cost(PP.cost, still, xd, goal, fog, fog_var)[2]) > 0.0
     assert float(rollout_cost(cp, still, xd, goal, fog, fog_var)[2]) == 0.0
@@ -411,3 +413,77 @@ def test_brake_samples_find_the_stop_that_random_samples_miss():
             assert float(out.controls[:10, 1].min()) < -4000.0         # braking hard
             assert front.max() < 34.0 and hit[b] == 0.0                # and stops short
     assert hit[0] > 0.0                                               # the test has teeth
+
+
+def test_priced_poses_walk_the_models_stopping_distance_straight_on(rng):
+    """The B poses past the horizon's end lie straight on along its heading at 1/B ... 1
+    of the stopping distance (one control tick at speed, the force's ramp, then the brake
+    limit: float64, integrated in 0.1 ms steps), with the speed braking leaves there."""
+    from services.planner.costs import priced_poses
+    c = PP.cost
+    assert c.stop_poses == 3
+    states = rng.normal(size=(5, PP.horizon + 1, 6)).astype(np.float32)
+    states[:, -1, S.V] = rng.uniform(0.0, 12.0, 5)
+    states[:, -1, S.X:] = rng.uniform(-3.0, 3.0, (5, 3)) * [10.0, 10.0, 1.0]
+    got = np.asarray(priced_poses(c, jnp.asarray(states)))
+    assert got.shape == (5, PP.horizon + 4, 6)
+    np.testing.assert_array_equal(got[:, :PP.horizon + 1], states)
+    v_cfg = CFG.vehicle
+    a, rate = -v_cfg.force_min_n / v_cfg.mass_kg, v_cfg.force_rate_max_nps / v_cfg.mass_kg
+    for k in range(5):
+        v, s, t, h = float(states[k, -1, S.V]), 0.0, 0.0, 1e-4
+        while v > 0.0:                      # the reference: walk the stop
+            dec = 0.0 if t < c.dt else min(a, rate * (t - c.dt))
+            s, v, t = s + v * h - 0.5 * dec * h * h, v - dec * h, t + h
+        last = states[k, -1]
+        for j, f in enumerate((1 / 3, 2 / 3, 1.0)):
+            pose = got[k, PP.horizon + 1 + j]
+            np.testing.assert_allclose(pose[S.X], last[S.X] + f * s * np.cos(last[S.PSI]),
+                                       atol=2e-3)
+            np.testing.assert_allclose(pose[S.Y], last[S.Y] + f * s * np.sin(last[S.PSI]),
+                                       atol=2e-3)
+            np.testing.assert_allclose(pose[S.V], last[S.V] * np.sqrt(1.0 - f), atol=1e-5)
+
+
+def test_a_wall_just_past_the_horizon_is_priced_by_the_stopping_poses():
+    """A rollout that ends at 8 m/s 3 m short of a wall: it could not stop before it. The
+    stopping poses price the wall; without them (the paper's horizon) it costs nothing."""
+    mean = jnp.zeros((400, 400), jnp.float32).at[:, 250:255].set(2.0)        # x 50-51 m
+    m = MapView(mean, jnp.zeros_like(mean), jnp.zeros(2), 0.2)
+    n = PP.horizon
+    states = np.zeros((n + 1, 6), np.float32)
+    states[:, S.V] = 8.0
+    states[:, S.X] = np.linspace(15.0, 47.0 - CFG.vehicle.footprint_length_m / 2, n + 1)
+    states[:, S.Y] = 40.0
+    xdots = np.zeros((n, 6), np.float32)
+    goal = jnp.asarray([70.0, 40.0, 0.0])
+    surface = {}
+    for b in (0, 3):
+        c = dataclasses.replace(PP.cost, stop_poses=b)
+        surface[b] = float(rollout_cost(c, jnp.asarray(states), jnp.asarray(xdots), goal, m,
+                                        jnp.zeros((n + 1 + b, 5 * len(c.footprint))))[2])
+    assert surface[0] == 0.0 and surface[3] > 0.0
+
+
+def test_advanced_nominals_leave_a_plan_that_puts_off_its_start():
+    """A standing vehicle whose nominal waits 2 s before it drives off on open ground, with
+    small sampling noise (0.02 rad, 100 N): the noise alone leaves the wait in place, the
+    nominal done sooner (by 2 and 4 steps) costs less and MPPI takes it."""
+    m = flat_map()
+    goal = np.array([60.0, 40.0, 0.0])
+    x0 = np.array([0, 0, 0, 20.0, 40.0, 0.0])
+    wait = np.zeros((PP.horizon, 2), np.float32)
+    wait[20:, 1] = 3000.0
+    moved = {}
+    for a in (0, 2):
+        params = dataclasses.replace(PP, advance_samples=a, noise_std=(0.02, 100.0))
+        qs = mppi.initial_state(params, 0)._replace(nominal=jnp.asarray(wait))
+        if a:
+            seqs = np.asarray(mppi.advance_sequences(params, qs.nominal))
+            np.testing.assert_array_equal(seqs[0], np.concatenate([wait[2:]] + [wait[-1:]] * 2))
+            np.testing.assert_array_equal(seqs[1, :16], wait[4:20])
+        qs, out = mppi.solve(params, qs, x0, np.zeros(2), goal, m.mean, m.variance, m.origin,
+                             0.2)
+        moved[a] = float(np.asarray(out.controls)[:20, 1].mean())
+    # advanced by 4 steps: 4 of the first 20 at 3000 N, 600 N on average
+    assert moved[0] < 50.0 and moved[2] > 450.0, moved

@@ -12,6 +12,9 @@ Terms, by the paper's equation labels:
   stop         S_acc = w_acc V_N^2 |V_N| / (2 d_N)
   direction    S_orientation = w_o phi_G sum_i |Psi_i - Psi_G| psi_i
 
+d is the straight-line distance to the goal in the paper; ours by default is the length
+of the shortest path the vehicle can drive into the goal circle (`goal_distance`).
+
 Readings of the paper's open symbols are in docs/planner.md.
 """
 
@@ -25,9 +28,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from common.config import Config
-from common.geometry import footprint_points, wrap_angle
+from common.geometry import footprint_points, goal_path_length, turning_radius, wrap_angle
 from services.planner.fastmath import FAST
-from services.plant.dynamics import S, accelerations
+from services.plant.dynamics import Reaction, S, accelerations
 
 TERMS = ("time", "dynamic", "surface", "dist", "acc", "orientation")
 
@@ -58,6 +61,10 @@ class CostParams:
     samples: int                   # N_theta of the Monte-Carlo estimate
     crash_variance: float          # absorbing crash on cells known this well; 0 = off
     surface_distance: float        # per-step surface weight V dt / this; 0 = off (plain sum)
+    turn_radius: float             # the goal distance along a path this tight; 0 = straight line
+    goal_reach: float              # ... into the goal circle of this radius
+    stop_poses: int                # the surface cost also prices this many poses of the
+    stop: Reaction                 # ... way to a stop from the horizon's end; 0 = off
 
     @classmethod
     def from_config(cls, cfg: Config) -> CostParams:
@@ -71,7 +78,10 @@ class CostParams:
                    float(np.sqrt(p.step_sq_threshold)), p.height_threshold_m, p.a_roll_mps2,
                    p.a_max_mps2, p.beta_max_rad, p.v_lat_max_mps,
                    tuple(map(tuple, fp.tolist())), p.footprint_points, p.surface_estimator,
-                   p.surface_samples, p.crash_variance, p.surface_distance_m)
+                   p.surface_samples, p.crash_variance, p.surface_distance_m,
+                   turning_radius(v.lf_m + v.lr_m, v.steer_max_rad)
+                   if p.goal_distance == "turning" else 0.0, cfg.episode.goal_radius_m,
+                   p.stop_poses, Reaction.from_config(v))
 
 
 def exceed_prob(mean: Any, var: Any, threshold: Any) -> Any:
@@ -220,6 +230,40 @@ def absorbing_crash(c: CostParams, expected: Any, query_var: Any) -> Any:
     return jnp.where(crashed[:, None], 5.0, expected)
 
 
+def priced_poses(c: CostParams, states: Any) -> Any:
+    """The poses the surface cost prices, (..., N+1+B, 6): the rollout's, then `stop_poses`
+    = B poses along the way it would brake to a stop from its last one (straight on, the
+    model's stopping distance after one control tick: `Reaction.stopping`), at 1/B, 2/B,
+    ... of that distance, with the speed braking leaves there. A rollout may then not end
+    the horizon faster than the ground it has seen lets it stop: without them the cheapest
+    plan beside unseen ground reaches its edge at speed just as the horizon ends, and
+    keeps putting that off, standing still (docs/planner.md)."""
+    b = c.stop_poses
+    if b <= 0:
+        return states
+    last = states[..., -1:, :]
+    v = jnp.maximum(last[..., S.V], 0.0)
+    frac = jnp.arange(1, b + 1, dtype=jnp.float32) / b
+    along = c.stop.stopping(v, c.dt, jnp) * frac
+    psi = last[..., S.PSI]
+    ext = jnp.broadcast_to(last, last.shape[:-2] + (b, last.shape[-1]))
+    ext = ext.at[..., S.X].set(last[..., S.X] + along * jnp.cos(psi))
+    ext = ext.at[..., S.Y].set(last[..., S.Y] + along * jnp.sin(psi))
+    ext = ext.at[..., S.V].set(v * jnp.sqrt(1.0 - frac))
+    return jnp.concatenate([states, ext], axis=-2)
+
+
+def goal_distance(c: CostParams, states: Any, goal: Any, xp: Any = jnp) -> Any:
+    """d of the time, distance and stop terms at poses `states` (..., 6): the straight
+    line to the goal (the paper's), or with `turn_radius` the length of the shortest
+    forward path into the goal circle at that radius (`geometry.goal_path_length`): a
+    goal beside or behind the vehicle is as far as the turn it takes to get there."""
+    dx, dy = goal[0] - states[..., S.X], goal[1] - states[..., S.Y]
+    if c.turn_radius <= 0.0:
+        return xp.sqrt(dx * dx + dy * dy)
+    return goal_path_length(dx, dy, states[..., S.PSI], c.turn_radius, c.goal_reach, xp)
+
+
 def per_metre_weight(c: CostParams, V: Any, xp: Any = jnp) -> Any:
     """The weight of each step's expected surface indicators when `surface_distance` > 0:
     the distance the vehicle covers in the step, |V| dt, over that length (docs/planner.md)."""
@@ -239,17 +283,18 @@ def ground_now(m: MapView, states: Any) -> Any:
 def rollout_cost(c: CostParams, states: Any, xdots: Any, goal: Any, m: MapView,
                  query_var: Any, key: Any = None, expected: Any = None) -> Any:
     """Cost terms (6,) of one rollout: states (N+1, 6), dx/dt (N, 6), goal (3,),
-    `query_var` (N+1, 5 P) the variance met at the cells of `query_cells` (None when
+    `query_var` (T, 5 P) the variance met at the cells of `query_cells` on the T =
+    N+1+B `priced_poses` (None when
     `expected` is given and `crash_variance` is 0: nothing reads it); `key` for the
-    Monte-Carlo surface estimate; `expected` (N+1, P) the surface expectation where the
+    Monte-Carlo surface estimate; `expected` (T, P) the surface expectation where the
     caller has it already (VA-MPPI's native kernels), else computed here."""
     n = c.horizon
-    d = jnp.hypot(states[:, S.X] - goal[0], states[:, S.Y] - goal[1])
     V = states[:, S.V]
     i2, i3 = int(round(2.0 / c.dt)), int(round(3.0 / c.dt))
+    d0, d2, d3, dn = goal_distance(c, states[jnp.array([0, i2, i3, n])], goal)
     vf = c.time_speed_floor
-    s_time = c.w_time * (d[i2] / (4 * jnp.maximum(V[i2], vf)) + d[i3] / (2 * jnp.maximum(V[i3], vf))
-                         + d[n] / jnp.maximum(V[n], vf))
+    s_time = c.w_time * (d2 / (4 * jnp.maximum(V[i2], vf)) + d3 / (2 * jnp.maximum(V[i3], vf))
+                         + dn / jnp.maximum(V[n], vf))
 
     _, a_y, a_tot = accelerations(states[:-1], xdots, jnp)
     beta = FAST.arctan2(states[:-1, S.v], jnp.maximum(states[:-1, S.V], 0.5))
@@ -257,22 +302,22 @@ def rollout_cost(c: CostParams, states: Any, xdots: Any, goal: Any, m: MapView,
         (jnp.abs(a_y) >= c.a_roll).astype(jnp.float32) + (a_tot >= c.a_max)
         + (jnp.abs(beta) >= c.beta_max) + (jnp.abs(states[:-1, S.v]) >= c.v_lat_max))
 
+    priced = priced_poses(c, states)
     if expected is None:
-        rows, cols, outside = query_cells(c, m, states)
+        rows, cols, outside = query_cells(c, m, priced)
         expected = surface_expectation(c, m, rows, cols, outside, query_var,
                                        ground_now(m, states), key)
     per_step = absorbing_crash(c, expected, query_var)
     if c.surface_distance > 0.0:
         # a cell priced per metre crossed: a slower or stopped rollout does not pay again
         # for every tenth of a second it spends on the same cells
-        per_step = per_step * per_metre_weight(c, V)[:, None]
+        per_step = per_step * per_metre_weight(c, priced[:, S.V])[:, None]
     s_surf = c.w_surface * jnp.sum(per_step)
 
-    d0 = d[0]
     phi = jax.nn.sigmoid(2.0 * (c.activation_distance_m - d0))
-    ratio = d[n] / jnp.maximum(d0, 1e-3)
+    ratio = dn / jnp.maximum(d0, 1e-3)
     s_dist = c.w_dist * (ratio + 2.0 * phi * ratio)
-    s_acc = c.w_acc * V[n] ** 2 * jnp.abs(V[n]) / (2.0 * jnp.maximum(d[n], c.acc_distance_floor))
+    s_acc = c.w_acc * V[n] ** 2 * jnp.abs(V[n]) / (2.0 * jnp.maximum(dn, c.acc_distance_floor))
     psi_w = jnp.arange(n + 1, dtype=jnp.float32) / n
     s_or = c.w_orientation * phi * jnp.sum(
         jnp.abs(wrap_angle(states[:, S.PSI] - goal[2], jnp)) * psi_w)

@@ -31,6 +31,7 @@ from services.planner.costs import (
     MapView,
     footprint_cells,
     ground_now,
+    priced_poses,
     rollout_cost,
 )
 from services.planner.fastmath import FAST
@@ -51,6 +52,7 @@ class PlannerParams:
     noise_correlation: float           # rho of the AR(1) noise along the horizon; 0 = white
     brake_samples: int                 # samples replaced by full braking (0: the paper's MPPI)
     swerve_samples: int                # ... and by full-lock swerves (0: the paper's MPPI)
+    advance_samples: int               # ... and by the nominal done sooner (0: the paper's)
     rollouts_published: int
     rollout_kernel: str                # auto | jax | native (services/planner/native)
     threads: int                       # native kernels' threads; 0 = this process's cores
@@ -66,6 +68,8 @@ class PlannerParams:
                    p.temperature, (p.noise_steer_rad, p.noise_force_n), p.noise_correlation,
                    min(p.brake_samples, p.samples - 1),
                    min(p.swerve_samples, max(0, p.samples - 1 - p.brake_samples)),
+                   min(p.advance_samples,
+                       max(0, p.samples - 1 - p.brake_samples - p.swerve_samples)),
                    min(p.rollouts_published, p.samples), p.rollout_kernel, p.va_threads,
                    cfg.vehicle,
                    ControlLimits.from_config(cfg.vehicle), CostParams.from_config(cfg),
@@ -155,6 +159,7 @@ def query_variance(params: PlannerParams, m: MapView, states: jax.Array) -> jax.
     certain (zero variance); VA-MPPI decays the map variance by what each rollout
     would have seen before each step (services.planner.visibility).
     """
+    states = priced_poses(params.cost, states)
     rows, cols, _ = jax.vmap(footprint_cells, in_axes=(None, None, 0))(params.cost, m, states)
     if params.controller != "va":
         return jnp.zeros(rows.shape[:-1] + (len(OFFSETS) * rows.shape[-1],), jnp.float32)
@@ -174,13 +179,14 @@ def surface_terms(params: PlannerParams, m: MapView, states: jax.Array
     if (params.controller != "va" or c.estimator != "closed_form"
             or not native.use_native(params.visibility.backend)):
         return query_variance(params, m, states), None
-    rows, cols, outside = jax.vmap(footprint_cells, in_axes=(None, None, 0))(c, m, states)
     h0 = jax.vmap(ground_now, in_axes=(None, 0))(m, states)
-    if c.crash_variance <= 0.0 and native_applies(params.visibility, states.shape[1]):
+    priced = priced_poses(c, states)
+    rows, cols, outside = jax.vmap(footprint_cells, in_axes=(None, None, 0))(c, m, priced)
+    if c.crash_variance <= 0.0 and native_applies(params.visibility, priced.shape[1]):
         spec = native.SurfaceSpec(outside, h0, c.grad_threshold, c.step_threshold,
                                   c.height_threshold, c.n_across)
         return None, batched_decayed_variance(params.visibility, m.mean, m.variance, m.origin,
-                                              m.resolution, states, rows, cols, OFFSETS, spec)
+                                              m.resolution, priced, rows, cols, OFFSETS, spec)
     qvar = query_variance(params, m, states)
     return qvar, native.expected_surface(m.mean, rows, cols, outside, qvar, h0,
                                          resolution=m.resolution, grad=c.grad_threshold,
@@ -239,6 +245,17 @@ def swerve_sequences(params: PlannerParams, nominal: jax.Array) -> jax.Array:
     return jnp.stack([steer, force], axis=-1)
 
 
+def advance_sequences(params: PlannerParams, nominal: jax.Array) -> jax.Array:
+    """(A, N, 2) the nominal advanced by 2, 4, ... 2 A steps, its last control held: the
+    same plan carried out sooner. A nominal that puts off its start (a stopped vehicle
+    whose plan accelerates only later) is only ever perturbed by white noise that averages
+    out over a few steps, so MPPI keeps putting it off even when doing it now costs less
+    (docs/planner.md)."""
+    n = nominal.shape[0]
+    shifts = 2 * jnp.arange(1, params.advance_samples + 1)
+    return nominal[jnp.minimum(jnp.arange(n)[None] + shifts[:, None], n - 1)]
+
+
 def _iteration(params: PlannerParams, state: PlannerState, x0, u_prev, goal, m: MapView):
     key, sub, mc = jax.random.split(state.key, 3)
     k = params.samples
@@ -251,6 +268,10 @@ def _iteration(params: PlannerParams, state: PlannerState, x0, u_prev, goal, m: 
     if params.swerve_samples:                         # then W swerves
         candidates = candidates.at[1 + b:1 + b + params.swerve_samples].set(
             swerve_sequences(params, state.nominal))
+    a0 = 1 + b + params.swerve_samples
+    if params.advance_samples:                        # then A advanced nominals
+        candidates = candidates.at[a0:a0 + params.advance_samples].set(
+            advance_sequences(params, state.nominal))
     states, applied, xdots = rollouts(params, x0, u_prev, candidates)
 
     qvar, expected = surface_terms(params, m, states)
