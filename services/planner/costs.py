@@ -235,9 +235,8 @@ def priced_poses(c: CostParams, states: Any) -> Any:
     = B poses along the way it would brake to a stop from its last one (straight on, the
     model's stopping distance after one control tick: `Reaction.stopping`), at 1/B, 2/B,
     ... of that distance, with the speed braking leaves there. A rollout may then not end
-    the horizon faster than the ground it has seen lets it stop: without them the cheapest
-    plan beside unseen ground reaches its edge at speed just as the horizon ends, and
-    keeps putting that off, standing still (docs/planner.md)."""
+    the horizon faster than the ground it has seen lets it stop; without them nothing
+    past the horizon's end is priced (docs/planner.md)."""
     b = c.stop_poses
     if b <= 0:
         return states
