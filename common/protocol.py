@@ -5,7 +5,7 @@ A service's protocol core (`services/<name>/protocol.py`) is a set of functions
     on_<input>(params, state, message, wall) -> (state, verdict, outputs)
 
 with no bus in them: the shell (`node.py`) decodes, calls the core, publishes the
-`Out`s; the in-process runner (`deploy/runner.py`) calls the same functions with
+`Out`s; the in-process runner (`deploy/sim/runner.py`) calls the same functions with
 messages it builds itself (`Stamper`). What they share lives here:
 
 - **Input acceptance** (`check`, `accept`): every input is checked before it

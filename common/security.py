@@ -29,7 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from common.bus import (
+from common.topics import (
     CACHED,
     INPUTS,
     PREFIX,

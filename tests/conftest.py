@@ -13,7 +13,7 @@ import pytest
 
 from common import compile_cache
 from common.bus import open_session
-from deploy.launch import free_port, router_config
+from deploy.launch.up import free_port, router_config
 
 _own_cache: str | None = None
 _own_home: str | None = None
@@ -48,14 +48,14 @@ def rng(request) -> np.random.Generator:
 
 @pytest.fixture
 def va_planning_problem():
-    """VA-MPPI's benchmark problem (the offroad map of `deploy.bench.planner_inputs`) with
+    """VA-MPPI's benchmark problem (the offroad map of `deploy.bench.kernels.planner_inputs`) with
     K = 64 rollouts of sampled noise round a zero nominal: (params, map view, states
     (64, N+1, 6))."""
     import jax
     import jax.numpy as jnp
 
     from common.config import load_config
-    from deploy.bench import planner_inputs
+    from deploy.bench.kernels import planner_inputs
     from services.planner import mppi
     from services.planner.costs import MapView
     cfg = load_config(overrides=['planner.controller="va"', "planner.samples=64"])

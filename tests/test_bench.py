@@ -6,7 +6,7 @@ import sys
 
 
 def test_planner_bench_json_names_the_device_and_every_case():
-    r = subprocess.run([sys.executable, "-m", "deploy.cli", "bench", "planner", "--samples",
+    r = subprocess.run([sys.executable, "-m", "deploy", "bench", "planner", "--samples",
                         "16", "--reps", "3", "--json"], capture_output=True, text=True,
                        timeout=900)
     assert r.returncode == 0, r.stderr[-2000:]
@@ -28,7 +28,7 @@ def test_planner_bench_json_names_the_device_and_every_case():
 
 
 def bench_json(*args):
-    r = subprocess.run([sys.executable, "-m", "deploy.cli", "bench", *args, "--json"],
+    r = subprocess.run([sys.executable, "-m", "deploy", "bench", *args, "--json"],
                        capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stderr[-2000:]
     return json.loads(r.stdout)
@@ -62,7 +62,7 @@ def test_chain_log_follows_depth_map_cmd_to_the_first_state_that_applies_it():
     (a standby, a rogue) is not taken for it."""
     import msgpack
 
-    from deploy.bench import ChainLog
+    from deploy.recording.timing import ChainLog
     log = ChainLog("v0")
 
     def put(topic, seq, stamp, wall, inputs=(), source="x/0", **body):
@@ -102,7 +102,7 @@ def test_faults_table_renders_the_committed_figures():
     import json
     from pathlib import Path
 
-    from deploy.bench import table
+    from deploy.bench.main import table
     result = json.loads((Path(__file__).parent.parent / "docs/bench/faults-cpu.json").read_text())
     text = table(result)
     assert text.count("| supervised |") == 8 and "| lost at speed | realtime | router |" in text

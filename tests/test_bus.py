@@ -13,16 +13,14 @@ from common.bus import (
     MemoryTransport,
     Node,
     ZenohTransport,
-    admin_key,
     alive_instances,
-    heartbeat_key,
-    key_matches,
     open_session,
     query_json,
 )
 from common.config import BusConfig
 from common.messages import Header, Heartbeat, Map, State, decode, encode
 from common.protocol import SeqTrack
+from common.topics import admin_key, heartbeat_key, key_matches
 
 
 def client(endpoint):
@@ -90,7 +88,7 @@ def test_vamppi_health_lists_live_instances(router):
     with Node(client(router), "vh", "sensor", "s1") as node:
         node.ready()
         time.sleep(0.3)
-        r = subprocess.run([sys.executable, "-m", "deploy.cli", "health", "--connect", router,
+        r = subprocess.run([sys.executable, "-m", "deploy", "health", "--connect", router,
                             "--vehicle", "vh"], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     rows = [json.loads(line) for line in r.stdout.splitlines()]

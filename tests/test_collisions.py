@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from common.config import config_toml, load_config
-from deploy.collisions import (
+from deploy.analysis.collisions import (
     NOT_REPRODUCED,
     UNATTRIBUTED,
     attribute,
@@ -18,9 +18,10 @@ from deploy.collisions import (
     save,
     table,
 )
-from deploy.experiment import collisions_section, config_digest
-from deploy.reveal import stopping_distance
-from deploy.runner import Cores, collision_record, mapped_obstacles
+from deploy.analysis.reveal import stopping_distance
+from deploy.analysis.summary import collisions_section
+from deploy.sim.experiment import config_digest
+from deploy.sim.runner import Cores, collision_record, mapped_obstacles
 from services.plant.dynamics import S
 
 
@@ -132,7 +133,7 @@ def test_cli_reruns_an_older_record_and_refuses_what_it_does_not_reproduce(tmp_p
            "outcome": "collision", "sim_time_s": 0.2, "config_digest": config_digest(cfg)}
     other = dict(rec, seed=1, config_digest="0" * 16)
     (tmp_path / "runs.jsonl").write_text(json.dumps(rec) + "\n" + json.dumps(other) + "\n")
-    r = subprocess.run([sys.executable, "-m", "deploy.cli", "collisions", str(tmp_path),
+    r = subprocess.run([sys.executable, "-m", "deploy", "collisions", str(tmp_path),
                         "--rerun", "--json"], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     rows = json.loads(r.stdout)
@@ -148,13 +149,13 @@ def test_cli_reruns_an_older_record_and_refuses_what_it_does_not_reproduce(tmp_p
     hit = {"t_s": 9.5, "x": 60.0, "y": 33.5, "heading_rad": 1.5, "speed_mps": 5.0,
            "off_map": False, "obstacles": []}
     (second / "runs.jsonl").write_text(json.dumps(_record(5, collision=hit)) + "\n")
-    r = subprocess.run([sys.executable, "-m", "deploy.cli", "collisions", str(tmp_path),
+    r = subprocess.run([sys.executable, "-m", "deploy", "collisions", str(tmp_path),
                         str(second)], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     assert json.loads(r.stderr.strip().splitlines()[-1]) == {"collisions": 3, UNATTRIBUTED: 2,
                                                              "recorded": 1}
     assert "| offroad | va | 400 | an obstacle cell of no listed obstacle | 1 |" in r.stdout
     (tmp_path / "collisions.json").write_text("{torn")
-    r = subprocess.run([sys.executable, "-m", "deploy.cli", "collisions", str(tmp_path)],
+    r = subprocess.run([sys.executable, "-m", "deploy", "collisions", str(tmp_path)],
                        capture_output=True, text=True, timeout=600)
     assert r.returncode == 2 and "collisions.json: unreadable" in r.stderr

@@ -53,7 +53,7 @@ def test_bad_file_is_a_clear_error(tmp_path):
 
 
 def test_cli_rejects_bad_config_before_starting():
-    r = subprocess.run([sys.executable, "-m", "deploy.cli", "up", "--samples", "0"],
+    r = subprocess.run([sys.executable, "-m", "deploy", "up", "--samples", "0"],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2
     assert "planner.samples" in r.stderr

@@ -10,7 +10,8 @@ import time
 import pytest
 
 from common.config import load_config
-from deploy.experiment import (
+from deploy.analysis.summary import summarize
+from deploy.sim.experiment import (
     KEY_FIELDS,
     ExperimentError,
     config_digest,
@@ -18,7 +19,6 @@ from deploy.experiment import (
     experiment,
     read_runs,
     saved_config,
-    summarize,
 )
 from services.plant.core import OUTCOMES
 
@@ -27,7 +27,7 @@ SETTINGS = ["--set", "episode.timeout_s=1.5", "--set", "planner.horizon=40"]
 
 def run(out, runs, extra=()):
     return subprocess.run(
-        [sys.executable, "-m", "deploy.cli", "experiment", "--scenario", "alleyway",
+        [sys.executable, "-m", "deploy", "experiment", "--scenario", "alleyway",
          "--controllers", "va,deterministic,prescient", "--samples", "16", "--runs", str(runs),
          "--seed", "3", "--out", str(out), "--quiet", *SETTINGS, *extra],
         capture_output=True, text=True, timeout=900)
@@ -90,7 +90,7 @@ def test_runs_on_an_older_scenario_layout_are_not_resumed_with_the_newest(tmp_pa
     (tmp_path / "runs.jsonl").write_text(json.dumps(old) + "\n")
     before = (tmp_path / "runs.jsonl").read_text()
     with pytest.raises(ExperimentError, match="layout 1.*episode.layout=1"):
-        experiment(cfg, ["offroad"], ["va"], [16], 2, 0, tmp_path, plots=False, progress=False)
+        experiment(cfg, ["offroad"], ["va"], [16], 2, 0, tmp_path, progress=False)
     assert (tmp_path / "runs.jsonl").read_text() == before
     assert not (tmp_path / "config.toml").exists()
 
@@ -156,7 +156,7 @@ def test_a_stopped_experiment_stops_its_workers_and_keeps_its_runs(tmp_path, sig
                                                                    timeout_s):
     out = tmp_path / "exp"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "deploy.cli", "experiment", "--scenario", "alleyway",
+        [sys.executable, "-m", "deploy", "experiment", "--scenario", "alleyway",
          "--controllers", controllers, "--samples", "16", "--runs", "50", "--seed", "3",
          "--out", str(out), "--quiet", "--no-plots", "--jobs", "2",
          "--set", f"episode.timeout_s={timeout_s}"],
@@ -184,7 +184,7 @@ def test_a_stopped_experiment_stops_its_workers_and_keeps_its_runs(tmp_path, sig
 
 
 def test_fisher_exact_matches_scipys_on_known_tables():
-    from deploy.experiment import fisher_exact
+    from deploy.analysis.summary import fisher_exact
     # scipy.stats.fisher_exact (two-sided) gives these
     assert fisher_exact(0, 20, 12, 8) == pytest.approx(4.5095150768120733e-05, rel=1e-12)
     assert fisher_exact(3, 17, 5, 15) == pytest.approx(0.6947646947646948, rel=1e-12)
@@ -192,7 +192,7 @@ def test_fisher_exact_matches_scipys_on_known_tables():
 
 
 def test_summaries_by_kind_and_overall_pair_each_run_with_the_prescient_one():
-    from deploy.experiment import summarize, summary_markdown
+    from deploy.analysis.summary import summary_markdown
     runs = []
     for world, kind in (("a.toml", "corner"), ("b.toml", "corner"), ("c.toml", "trees")):
         for seed in (0, 1):

@@ -11,7 +11,7 @@ import pytest
 
 from common.config import load_config
 from common.messages import decode
-from deploy.faults import (
+from deploy.bench.faults import (
     Delay,
     Pipeline,
     Rogue,
@@ -22,8 +22,8 @@ from deploy.faults import (
     rejections,
     run_with_cut,
 )
-from deploy.recording import iter_messages
-from deploy.runner import run_episode
+from deploy.recording.record import iter_messages
+from deploy.sim.runner import run_episode
 
 pytestmark = pytest.mark.integration
 

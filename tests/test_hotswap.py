@@ -13,10 +13,10 @@ import pytest
 
 from common.config import load_config
 from common.supervision import RETIRED_EXIT
-from deploy.faults import Pipeline, Proc, Up, processes_with, rejections
-from deploy.launch import service_command
-from deploy.runner import run_episode
-from deploy.timing import authority_changes
+from deploy.bench.faults import Pipeline, Proc, Up, processes_with, rejections
+from deploy.launch.up import service_command
+from deploy.recording.timing import authority_changes
+from deploy.sim.runner import run_episode
 
 pytestmark = pytest.mark.integration
 
@@ -77,7 +77,7 @@ def test_lockstep_swap_fail_over_and_rogues_leave_the_episode_bit_identical(tmp_
     assert "not the authority" in why and "another process of the authority still beats" in why
     kinds = [a["kind"] for a in authority_changes(p.path)]
     assert kinds.count("swap") == 1 and kinds.count("fail-over") == 1
-    r = subprocess.run([sys.executable, "-m", "deploy.cli", "replay", str(p.path), "--feed",
+    r = subprocess.run([sys.executable, "-m", "deploy", "replay", str(p.path), "--feed",
                         "planner", "--compare"], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
     report = json.loads(r.stdout.strip().splitlines()[-1])
@@ -121,7 +121,7 @@ def test_realtime_swap_by_command_a_refused_one_and_a_fail_over(tmp_path):
             rogue = planner(p, "rogue", RT, "--role", "replay")
             p.up()
             p.wait(lambda: p.t >= 1.0, 120, "t >= 1 s")
-            swap = [sys.executable, "-m", "deploy.cli", "swap", "planner", "--connect",
+            swap = [sys.executable, "-m", "deploy", "swap", "planner", "--connect",
                     p.endpoint, "--timeout", "60"]
             bad = subprocess.Popen([*swap[:-1], "2", "--instance", "9",  # no time to warm up
                                     "--set", "mapper.size_cells=200"],
@@ -167,7 +167,7 @@ def test_a_swap_inside_vamppi_up(tmp_path):
     t = up.wait_line("all services up", 240)
     line = next(text for at, text in up.lines if at >= t and "router on" in text)
     endpoint = line.split("router on ")[1].split()[0]
-    r = subprocess.run([sys.executable, "-m", "deploy.cli", "swap", "planner", "--connect",
+    r = subprocess.run([sys.executable, "-m", "deploy", "swap", "planner", "--connect",
                         endpoint, "--instance", "2", "--vehicle", marker],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr[-2000:]
@@ -185,7 +185,7 @@ def test_rogue_planners_in_process_cores_never_move_the_plant():
     authority changes nothing, whatever it contains."""
     from common.messages import Cmd, InputRef
     from common.protocol import Out, Stamper
-    from deploy.runner import Cores
+    from deploy.sim.runner import Cores
     from services.plant import protocol as plant
     c = Cores.from_config(load_config(overrides=LOCK))
     run, _ = plant.start(c.plant, 1, 0.0)

@@ -5,11 +5,12 @@ import time
 
 import numpy as np
 
-from common.bus import MemoryBus, MemoryTransport, admin_key, alive_key, query_json, topic_key
+from common.bus import MemoryBus, MemoryTransport, query_json
 from common.config import load_config
 from common.messages import Cmd, InputRef, State, decode, encode
 from common.protocol import Out, Stamper
-from deploy.runner import run_episode
+from common.topics import admin_key, alive_key, topic_key
+from deploy.sim.runner import run_episode
 from services.mapper import node as mapper_node
 from services.planner import node as planner_node
 from services.plant import node as plant_node

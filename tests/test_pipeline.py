@@ -11,11 +11,11 @@ import time
 import numpy as np
 import pytest
 
-from common.bus import topic_key
 from common.config import load_config
 from common.messages import Event, State, decode
-from deploy.launch import services_up
-from deploy.runner import run_episode
+from common.topics import topic_key
+from deploy.launch.up import services_up
+from deploy.sim.runner import run_episode
 from services.plant.protocol import OUTCOMES
 
 pytestmark = pytest.mark.integration
@@ -74,7 +74,7 @@ def test_the_bus_pipeline_runs_a_scenario_file_as_the_in_process_runner_does(tmp
 
 
 def test_vamppi_up_reaches_the_goal_and_prints_the_summary():
-    r = subprocess.run([sys.executable, "-m", "deploy.cli", "up", "--scenario", "open-field",
+    r = subprocess.run([sys.executable, "-m", "deploy", "up", "--scenario", "open-field",
                         "--samples", "256", "--clock", "lockstep", "--seed", "1"],
                        capture_output=True, text=True, timeout=600)
     last = json.loads(r.stdout.strip().splitlines()[-1])
@@ -101,7 +101,7 @@ def _processes_with(marker: str) -> list[int]:
 
 def test_ctrl_c_stops_every_process():
     marker = f"ctrlc{os.getpid()}"
-    p = subprocess.Popen([sys.executable, "-m", "deploy.cli", "up", "--samples", "64",
+    p = subprocess.Popen([sys.executable, "-m", "deploy", "up", "--samples", "64",
                           "--vehicle", marker], stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True, start_new_session=True)
     deadline = time.monotonic() + 240

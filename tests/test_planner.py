@@ -245,7 +245,7 @@ def test_advance_shifts_the_nominal():
 
 @pytest.mark.parametrize("controller", ["deterministic", "prescient"])
 def test_in_process_episode_reaches_the_goal(controller):
-    from deploy.runner import run_episode
+    from deploy.sim.runner import run_episode
     cfg = load_config(overrides=["planner.samples=256", f'planner.controller="{controller}"'])
     r = run_episode(cfg)
     assert r.outcome == "success", r.summary(cfg)

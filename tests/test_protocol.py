@@ -11,7 +11,7 @@ from common.config import load_config
 from common.messages import Cmd, Depth, Heartbeat, InputRef, Map, State
 from common.protocol import NEW, REPEAT, Episodes, Order, Out, Stamper, accept, check, judge
 from common.supervision import Watch, on_beat
-from deploy.runner import Cores
+from deploy.sim.runner import Cores
 from services.mapper import protocol as mapper
 from services.planner import mppi
 from services.planner import protocol as planner
@@ -371,7 +371,7 @@ def test_the_vehicle_drives_on_after_a_command_outage(outage_s):
     past what the plant did had left the vehicle braking at a standstill until the
     timeout after outages of 5 s and more; checked against the plant's applied control,
     the warm start starts afresh and the vehicle reaches the goal."""
-    from deploy.runner import run_episode
+    from deploy.sim.runner import run_episode
     cfg = load_config(overrides=["planner.samples=256", 'episode.scenario="open-field"'])
     r = run_episode(cfg, planner_link=lambda t: not (3.0 - 1e-9 <= t < 3.0 + outage_s - 1e-9))
     assert r.outcome == "success", (r.outcome, r.sim_time_s)

@@ -15,7 +15,7 @@ import pytest
 import zenoh
 from mcap.reader import make_reader
 
-from common.bus import open_session, topic_key
+from common.bus import open_session
 from common.config import BusConfig, load_config
 from common.messages import (
     MESSAGE_TYPES,
@@ -26,8 +26,9 @@ from common.messages import (
     encode,
     json_schema,
 )
-from deploy.foxglove import export
-from deploy.recording import (
+from common.topics import topic_key
+from deploy.recording.foxglove import export
+from deploy.recording.record import (
     RecordingError,
     RecordingWriter,
     is_complete,
@@ -37,9 +38,9 @@ from deploy.recording import (
     recording_metadata,
     recover,
 )
-from deploy.replay import compare_messages, feed, replay
-from deploy.runner import run_episode
-from deploy.timing import analyse, table
+from deploy.recording.replay import compare_messages, feed, replay
+from deploy.recording.timing import analyse, table
+from deploy.sim.runner import run_episode
 
 SHORT = ["planner.samples=64", "episode.timeout_s=2.0", 'episode.scenario="open-field"']
 
@@ -162,7 +163,7 @@ def test_a_file_that_is_not_a_recording_is_a_clear_error(tmp_path):
             list(iter_messages(bad))
         with pytest.raises(RecordingError):
             recover(bad, tmp_path / "out.mcap")
-    r = subprocess.run([sys.executable, "-m", "deploy.cli", "timing", str(bad)],
+    r = subprocess.run([sys.executable, "-m", "deploy", "timing", str(bad)],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "not an MCAP recording" in r.stderr
     assert "Traceback" not in r.stderr
@@ -183,7 +184,7 @@ def test_compare_reports_the_first_differing_field():
 def test_recorder_killed_mid_stream_loses_at_most_the_last_second(router, tmp_path, rng):
     """`vamppi record` as a process, 50 Hz states and 1.3 MB maps at 10 Hz, SIGKILL."""
     out = tmp_path / "killed.mcap"
-    proc = subprocess.Popen([sys.executable, "-m", "deploy.cli", "record", "-o", str(out),
+    proc = subprocess.Popen([sys.executable, "-m", "deploy", "record", "-o", str(out),
                              "--connect", router, "--set", 'episode.vehicle="v"'],
                             stderr=subprocess.PIPE, text=True)
     try:
@@ -251,7 +252,7 @@ def test_replay_publishes_every_message_with_the_recorded_spacing(router, tmp_pa
 @pytest.mark.integration
 def test_lockstep_episode_recorded_whole_replays_bit_for_bit_and_a_change_diverges(tmp_path):
     path = tmp_path / "episode.mcap"
-    r = subprocess.run([sys.executable, "-m", "deploy.cli", "up", "--record", str(path),
+    r = subprocess.run([sys.executable, "-m", "deploy", "up", "--record", str(path),
                         *sum((["--set", o] for o in SHORT), [])],
                        capture_output=True, text=True, timeout=600)
     summary = json.loads(r.stdout.strip().splitlines()[-1])
@@ -294,7 +295,7 @@ def test_timing_of_a_realtime_recording_agrees_with_the_live_pipeline_bench(tmp_
     """The bench's live chain follower and `vamppi timing` on its recording: same run,
     same numbers; a realtime episode recorded at full rate has no seq gap."""
     path = tmp_path / "rt.mcap"
-    r = subprocess.run([sys.executable, "-m", "deploy.cli", "bench", "pipeline", "--json",
+    r = subprocess.run([sys.executable, "-m", "deploy", "bench", "pipeline", "--json",
                         "--samples", "16", "--controllers", "deterministic", "--duration", "4",
                         "--scenario", "open-field", "--record", str(path)],
                        capture_output=True, text=True, timeout=900)
@@ -334,9 +335,10 @@ def test_recorder_measures_clocks_and_timing_corrects_for_them(tmp_path):
     offset over the bus (a clock queryable on a MemoryBus) and notes it; `vamppi timing`
     puts its wall times on the recorder's clock, so the transport latency is its true few
     milliseconds, not -5 s."""
-    from common.bus import MemoryBus, MemoryTransport, admin_key, alive_key, heartbeat_key
+    from common.bus import MemoryBus, MemoryTransport
     from common.messages import Heartbeat
-    from deploy.recording import Recorder, recorded_clocks
+    from common.topics import admin_key, alive_key, heartbeat_key
+    from deploy.recording.record import Recorder, recorded_clocks
     bus, ahead = MemoryBus(), 5.0
     svc = MemoryTransport(bus)
     svc.token(alive_key("v0", "plant", "0"))

@@ -10,7 +10,7 @@ import pytest
 
 from common.config import load_config
 from common.scenarios import build_scenario
-from deploy.reveal import first_sightings, poses_of_path, reveal_runs, stopping_distance
+from deploy.analysis.reveal import first_sightings, poses_of_path, reveal_runs, stopping_distance
 
 CFG = load_config()
 
@@ -66,14 +66,14 @@ def test_cli_reports_runs_and_skips_a_torn_line(tmp_path):
            "outcome": "collision", "time_to_goal_s": None, "path": path, "scenario_seed": 0}
     runs = tmp_path / "runs.jsonl"
     runs.write_text(json.dumps(rec) + "\n" + '{"scenario": "off')
-    r = subprocess.run([sys.executable, "-m", "deploy.cli", "reveal", str(tmp_path), "--json"],
+    r = subprocess.run([sys.executable, "-m", "deploy", "reveal", str(tmp_path), "--json"],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     rows = json.loads(r.stdout)
     assert len(rows) == 2 and rows[0]["seed"] == 7 and rows[0]["seen_at_s"] == 2.1
     assert rows[0]["stoppable"] is True and rows[1]["seen_at_s"] is None
     assert "skipped 1" in r.stderr
-    r = subprocess.run([sys.executable, "-m", "deploy.cli", "reveal", str(tmp_path / "no")],
+    r = subprocess.run([sys.executable, "-m", "deploy", "reveal", str(tmp_path / "no")],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 2 and "no such file" in r.stderr and "Traceback" not in r.stderr
 

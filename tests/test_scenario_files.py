@@ -120,7 +120,7 @@ def test_a_heightmap_beside_the_file_is_the_terrain_resampled_to_the_grid(tmp_pa
 
 
 def test_a_generated_world_is_reproducible_from_its_seed_and_feasible():
-    from deploy.generate import generate, reachable
+    from deploy.sim.generate import generate, reachable
     a = generate(CFG, "corner", 2)
     b = generate(CFG, "corner", 2)
     assert spec_toml(a) == spec_toml(b)
@@ -133,7 +133,7 @@ def test_a_generated_world_is_reproducible_from_its_seed_and_feasible():
 
 
 def test_the_plant_refuses_commands_from_a_planner_that_runs_another_world():
-    from deploy.runner import Cores
+    from deploy.sim.runner import Cores
     from services.plant import protocol
     cores = Cores.from_config(CFG)
     p = cores.plant
@@ -153,7 +153,7 @@ def test_the_plant_refuses_commands_from_a_planner_that_runs_another_world():
 
 @pytest.mark.integration
 def test_a_service_started_with_another_scenario_than_the_plants_is_refused(tmp_path):
-    from deploy.faults import Pipeline
+    from deploy.bench.faults import Pipeline
     over = ["planner.samples=64", "episode.timeout_s=2.0", f'episode.scenario="{SET_FILES[0]}"']
     with Pipeline(over, tmp_path) as b:
         b.service("plant")
@@ -166,13 +166,13 @@ def test_a_service_started_with_another_scenario_than_the_plants_is_refused(tmp_
 
 def test_the_cli_exports_generates_and_describes(tmp_path):
     out = tmp_path / "alley.toml"
-    r = subprocess.run([sys.executable, "-m", "deploy.cli", "scenario", "export", "--scenario",
+    r = subprocess.run([sys.executable, "-m", "deploy", "scenario", "export", "--scenario",
                         "alleyway", "--out", str(out)], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert out.read_text() == GOOD
-    r = subprocess.run([sys.executable, "-m", "deploy.cli", "scenario", "--scenario", str(out)],
+    r = subprocess.run([sys.executable, "-m", "deploy", "scenario", "--scenario", str(out)],
                        capture_output=True, text=True)
     assert r.returncode == 0 and '"digest"' in r.stdout
-    r = subprocess.run([sys.executable, "-m", "deploy.cli", "scenario", "generate", "--kind",
+    r = subprocess.run([sys.executable, "-m", "deploy", "scenario", "generate", "--kind",
                         "volcano"], capture_output=True, text=True)
     assert r.returncode == 2 and "unknown kind 'volcano'" in r.stderr

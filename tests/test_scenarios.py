@@ -15,7 +15,7 @@ import pytest
 
 from common.config import ConfigError, load_config
 from common.scenarios import LAYOUTS, build_scenario, scenario_of
-from deploy.reveal import returns_on, seen_from
+from deploy.analysis.reveal import returns_on, seen_from
 from services.sensor import core as sensor
 
 CFG = load_config()
@@ -78,7 +78,7 @@ def test_scenarios_are_deterministic_and_the_cli_describes_and_draws_them(tmp_pa
     assert a.heightmap.tobytes() == b.heightmap.tobytes()
     assert build_scenario("offroad", 4).heightmap.tobytes() != a.heightmap.tobytes()
     png = tmp_path / "offroad.png"
-    r = subprocess.run([sys.executable, "-m", "deploy.cli", "scenario", "--scenario", "offroad",
+    r = subprocess.run([sys.executable, "-m", "deploy", "scenario", "--scenario", "offroad",
                         "--plot", str(png)], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     layout = json.loads(r.stdout)

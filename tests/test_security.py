@@ -1,4 +1,4 @@
-"""Roles, generated access control and mutual TLS (common.security, deploy.certs): the
+"""Roles, generated access control and mutual TLS (common.security, deploy.launch.certs): the
 manifests against the topic table, and a real router enforcing the generated rules."""
 
 import json
@@ -8,10 +8,10 @@ import time
 import pytest
 import zenoh
 
-from common.bus import INPUTS, TOPICS, alive_key, key_matches, latest_key, topic_key
 from common.security import ROLES, accepted_names, access_control, manifest, tls
-from deploy.certs import make_certs
-from deploy.launch import free_port
+from common.topics import INPUTS, TOPICS, alive_key, key_matches, latest_key, topic_key
+from deploy.launch.certs import make_certs
+from deploy.launch.up import free_port
 
 V = "v0"
 
@@ -138,7 +138,7 @@ def test_a_revoked_certificate_connects_but_is_denied_everything(tmp_path):
     stolen.mkdir()
     for f in ("planner-2.pem", "planner-2.key", "ca.pem"):
         shutil.copy(certs / f, stolen / f)
-    r = subprocess.run([sys.executable, "-m", "deploy.cli", "certs", str(certs),
+    r = subprocess.run([sys.executable, "-m", "deploy", "certs", str(certs),
                         "--revoke", "planner-2"], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["accepted"] == ["planner-3", "recorder", "router"]
@@ -166,7 +166,7 @@ def test_a_revoked_certificate_connects_but_is_denied_everything(tmp_path):
 def test_vamppi_certs_names_the_role_and_instance(tmp_path):
     import subprocess
     import sys
-    r = subprocess.run([sys.executable, "-m", "deploy.cli", "certs", str(tmp_path),
+    r = subprocess.run([sys.executable, "-m", "deploy", "certs", str(tmp_path),
                         "--name", "planner-7", "--name", "viewer"], capture_output=True,
                        text=True, timeout=60)
     assert r.returncode == 0, r.stderr
@@ -174,7 +174,7 @@ def test_vamppi_certs_names_the_role_and_instance(tmp_path):
     subject = subprocess.run(["openssl", "x509", "-in", str(tmp_path / "planner-7.pem"),
                               "-noout", "-subject"], capture_output=True, text=True).stdout
     assert "CN = planner-7" in subject and "OU = 7" in subject
-    bad = subprocess.run([sys.executable, "-m", "deploy.cli", "certs", str(tmp_path),
+    bad = subprocess.run([sys.executable, "-m", "deploy", "certs", str(tmp_path),
                           "--name", "rogue"], capture_output=True, text=True, timeout=60)
     assert bad.returncode == 1 and "a role" in bad.stderr
 
@@ -191,8 +191,8 @@ def test_vamppi_up_over_mutual_tls_is_bit_identical_and_denies_a_wrong_role(tmp_
 
     from common.config import load_config
     from common.messages import Event, Header, encode
-    from deploy.faults import Up, recorded_trajectory
-    from deploy.runner import run_episode
+    from deploy.bench.faults import Up, recorded_trajectory
+    from deploy.sim.runner import run_episode
     certs = tmp_path / "certs"
     make_certs(certs)
     lock = ["planner.samples=64", "episode.timeout_s=8.0", 'episode.scenario="open-field"']
@@ -223,7 +223,7 @@ def test_vamppi_up_over_mutual_tls_is_bit_identical_and_denies_a_wrong_role(tmp_
     thief.close()
     assert summary["outcome"] == "timeout" and summary["failure"] is None, up.stderr()[-3000:]
     assert summary["foreign_events"] == 50              # not the plant vamppi up started
-    from deploy.recording import iter_messages
+    from deploy.recording.record import iter_messages
     assert not [m.key for m in iter_messages(path) if m.data == b"forged"]
     assert sum(m.data in fakes for m in iter_messages(path)) == 50   # the role may put them
     assert recorded_trajectory(path).tobytes() == ref.tobytes()
@@ -273,7 +273,7 @@ def test_user_password_instead_of_tls(tmp_path):
 
 
 def test_site_files_are_routers_that_never_scout_and_a_bad_one_is_a_clear_error(tmp_path):
-    """deploy/sites: each router file parses (zenoh's own format), listens where it says
+    """deploy/configs: each router file parses (zenoh's own format), listens where it says
     and never scouts; each service file is a client of its site's router. A missing or
     malformed router file ends `vamppi router` with exit 2 and the reason."""
     import subprocess
@@ -281,7 +281,7 @@ def test_site_files_are_routers_that_never_scout_and_a_bad_one_is_a_clear_error(
 
     from common.bus import endpoints_of
     from common.config import load_config
-    from deploy.faults import SITES
+    from deploy.bench.faults import SITES
     for f in sorted(SITES.glob("*.json5")):
         zc = zenoh.Config.from_file(str(f))
         assert endpoints_of(zc, "listen", "router"), f
@@ -295,6 +295,6 @@ def test_site_files_are_routers_that_never_scout_and_a_bad_one_is_a_clear_error(
     bad = tmp_path / "bad.json5"
     bad.write_text("{ mode: 'router', listen: { endpoints: [1, 2")
     for path in (bad, tmp_path / "missing.json5"):
-        r = subprocess.run([sys.executable, "-m", "deploy.cli", "router", "--config",
+        r = subprocess.run([sys.executable, "-m", "deploy", "router", "--config",
                             str(path)], capture_output=True, text=True, timeout=60)
         assert r.returncode == 2 and "vamppi router:" in r.stderr, r.stderr[-500:]

@@ -1,5 +1,5 @@
-"""Two sites in network namespaces (deploy.faults.two_sites): plant and sensor in one,
-mapper and planner in the other, a router each from deploy/sites, every link mutual TLS
+"""Two sites in network namespaces (deploy.bench.faults.two_sites): plant and sensor in one,
+mapper and planner in the other, a router each from deploy/configs, every link mutual TLS
 and both routers enforcing the generated access-control rules; and the attacks on it."""
 
 import collections
@@ -11,13 +11,13 @@ import time
 import pytest
 import zenoh
 
-from common.bus import alive_key, topic_key
 from common.config import load_config
 from common.messages import DecodeError, State, decode, peek
-from deploy.faults import Flood, Rogue, rejections, two_sites
-from deploy.recording import iter_messages, read_metadata
-from deploy.runner import run_episode
-from deploy.timing import analyse
+from common.topics import alive_key, topic_key
+from deploy.bench.faults import Flood, Rogue, rejections, two_sites
+from deploy.recording.record import iter_messages, read_metadata
+from deploy.recording.timing import analyse
+from deploy.sim.runner import run_episode
 
 pytestmark = [
     pytest.mark.integration,
@@ -34,7 +34,7 @@ RT = ["planner.samples=64", 'episode.scenario="open-field"', 'episode.clock="rea
 def test_lockstep_across_two_secured_sites_is_bit_identical_under_attack(tmp_path):
     """Lockstep across the two sites is the in-process episode bit for bit, while: a client
     without a certificate is refused at connect; a client with a viewer's certificate (the
-    wrong role) at site B replays every topic's hostile messages (deploy.faults.hostile)
+    wrong role) at site B replays every topic's hostile messages (deploy.bench.faults.hostile)
     and raises a planner's liveliness token, all denied by its router; and a client with a
     planner's certificate sends the same forged commands (its role's one topic), the real
     planner's source id among them, which its router lets through and the plant rejects,

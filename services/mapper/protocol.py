@@ -19,7 +19,6 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from common.bus import topic_key
 from common.config import Config
 from common.messages import Depth, Map
 from common.protocol import (
@@ -35,6 +34,7 @@ from common.protocol import (
     judge,
     ref,
 )
+from common.topics import topic_key
 from services.mapper import core
 from services.sensor.core import CameraParams
 

@@ -49,7 +49,6 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from common.bus import topic_key
 from common.config import Config
 from common.messages import Cmd, Map, State
 from common.protocol import (
@@ -68,6 +67,7 @@ from common.protocol import (
     ref,
 )
 from common.scenarios import Scenario
+from common.topics import topic_key
 from services.planner import mppi
 from services.planner.costs import TERMS
 

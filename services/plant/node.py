@@ -17,20 +17,13 @@ import math
 import threading
 import time
 
-from common.bus import (
-    HEARTBEAT,
-    RECOVERY_S,
-    SERVICES,
-    Node,
-    Transport,
-    alive_instances,
-    heartbeat_key,
-)
+from common.bus import Node, Transport, alive_instances
 from common.config import Config
 from common.messages import Clock, Cmd, Event, Handover, Heartbeat, State, encode
 from common.protocol import NEW, Out
 from common.scenarios import scenario_of
 from common.supervision import Watch, missing, on_beat
+from common.topics import HEARTBEAT, RECOVERY_S, SERVICES, heartbeat_key
 from services.plant import core, protocol
 
 log = logging.getLogger(__name__)

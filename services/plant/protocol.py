@@ -44,11 +44,11 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from common.bus import topic_key
 from common.config import Config
 from common.messages import Cmd, Handover, State
 from common.protocol import EPS, NEW, REPEAT, Order, Out, accept, check, on_tick, ref
 from common.supervision import Watch, alive, is_alive, newest, other_world
+from common.topics import topic_key
 from services.plant import core
 from services.plant.dynamics import S
 

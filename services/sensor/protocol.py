@@ -17,7 +17,6 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from common.bus import topic_key
 from common.config import Config
 from common.messages import State
 from common.protocol import (
@@ -35,6 +34,7 @@ from common.protocol import (
     ref,
 )
 from common.scenarios import Scenario
+from common.topics import topic_key
 from services.plant.dynamics import S
 from services.sensor import core
 

@@ -33,25 +33,21 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
-from common.bus import (
-    PREFIX,
-    SERVICES,
-    Health,
-    Inbox,
-    ZenohTransport,
-    alive_instances,
-    alive_key,
-    heartbeat_key,
-    launcher_key,
-    open_session,
-    topic_key,
-)
+from common.bus import Health, Inbox, ZenohTransport, alive_instances, open_session
 from common.config import BusConfig, Config
 from common.messages import DecodeError, Event, Heartbeat, decode
 from common.process import PARENT_ENV
 from common.security import default_certs
 from common.supervision import FAILED, REFUSED_EXIT, RETIRED_EXIT
-from deploy.certs import ensure_certs
+from common.topics import (
+    PREFIX,
+    SERVICES,
+    alive_key,
+    heartbeat_key,
+    launcher_key,
+    topic_key,
+)
+from deploy.launch.certs import ensure_certs
 from services.plant.protocol import OUTCOMES
 
 log = logging.getLogger(__name__)
@@ -83,7 +79,7 @@ def service_command(name: str, endpoint: str, overrides: list[str], config_path:
                     instance: str = "0", with_parent: bool = True) -> list[str]:
     """`vamppi service NAME`, a client of the router at `endpoint`, stopping with its
     parent (unless not `with_parent`)."""
-    cmd = [sys.executable, "-m", "deploy.cli", "service", name, "--instance", instance,
+    cmd = [sys.executable, "-m", "deploy", "service", name, "--instance", instance,
            *(["--stop-with-parent"] if with_parent else [])]
     if config_path:
         cmd += ["--config", config_path]
@@ -334,7 +330,7 @@ def recording_hook(cfg: Config, path: str, summary: dict[str, Any]
                    ) -> Callable[[Any], Callable[[], None]]:
     """An `on_session` that records every key of the vehicle to `path`; the recorder's
     statistics land in `summary["recording"]`."""
-    from deploy.recording import Recorder, recording_metadata
+    from deploy.recording.record import Recorder, recording_metadata
 
     def start(session: Any) -> Callable[[], None]:
         keys = f"{PREFIX}/{cfg.episode.vehicle}/**"

@@ -12,6 +12,13 @@
     vamppi collisions DIR... what each collision was on, and how long the map had shown it
 
 Every command takes `--config FILE` and `--set section.key=value` (repeatable).
+
+Where each command's code is: up (deploy/launch/up.py), swap (launch/swap.py), certs
+(launch/certs.py), service, router, health (here, around common.bus); record and recover
+(recording/record.py), replay, timing, export-foxglove (recording/replay.py, timing.py,
+foxglove.py); run (sim/runner.py), experiment (sim/experiment.py, its summary
+analysis/summary.py), scenario generate and set (sim/generate.py); reveal, collisions
+(analysis/); bench WHAT (bench/main.py).
 """
 
 from __future__ import annotations
@@ -34,17 +41,17 @@ from common.security import default_certs, with_identity
 from common.supervision import REFUSED_EXIT, RETIRED_EXIT
 
 
-def add_preset_arg(p: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
-    p.add_argument("--preset", help="a named set of parameters (common/presets: paper = the "
-                                    "paper's method), over --config and under --set")
-
-
-def add_config_args(p: argparse.ArgumentParser) -> None:
+def add_config_args(p: argparse.ArgumentParser, shorthands: bool = True) -> None:
+    """--config, --set and --preset; with `shorthands` the flags for the most used
+    parameters too (overrides_from_args reads them all)."""
     g = p.add_argument_group("configuration")
     g.add_argument("--config", help="TOML file merged over the defaults")
     g.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="override one parameter (repeatable)")
-    add_preset_arg(g)
+    g.add_argument("--preset", help="a named set of parameters (common/presets: paper = the "
+                                    "paper's method), over --config and under --set")
+    if not shorthands:
+        return
     g.add_argument("--scenario", help="episode.scenario: a built-in's name or a scenario file")
     g.add_argument("--controller", help="planner.controller")
     g.add_argument("--samples", type=int, help="planner.samples (K)")
@@ -82,7 +89,7 @@ def overrides_from_args(args: argparse.Namespace) -> list[str]:
 
 def config_from_args(args: argparse.Namespace) -> Config:
     """The configuration: --config's TOML over the defaults, then the flags. A router's
-    --config may be a zenoh JSON5 file instead (a site's, deploy/sites): bus.zenoh."""
+    --config may be a zenoh JSON5 file instead (a site's, deploy/configs): bus.zenoh."""
     path, overrides = getattr(args, "config", None), overrides_from_args(args)
     if args.command == "router" and path and path.endswith(".json5"):
         path, overrides = None, [f"bus.zenoh={json.dumps(path)}", *overrides]
@@ -100,6 +107,22 @@ def _setup_logging(verbose: bool) -> None:
     logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, stream=sys.stderr,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
     logging.getLogger("jax._src.xla_bridge").setLevel(logging.WARNING)
+
+
+def _interrupt_on_sigterm() -> None:
+    """SIGTERM unwinds like Ctrl-C (a KeyboardInterrupt): the children or workers stop."""
+    def interrupt(*_: object) -> None:
+        raise KeyboardInterrupt
+    signal.signal(signal.SIGTERM, interrupt)
+
+
+def _stop_event() -> threading.Event:
+    """An event Ctrl-C or SIGTERM sets, for a command that finishes its file on the way out
+    (no forced exit after a grace, unlike a service's common.process.stop_on_signals)."""
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    return stop
 
 
 SERVICE_MAINS = {
@@ -144,10 +167,10 @@ def cmd_service(args: argparse.Namespace, cfg: Config) -> int:
 
 
 def cmd_certs(args: argparse.Namespace, cfg: Config) -> int:
-    """A local CA and certificates per role for mutual TLS (deploy/certs.py); --revoke
+    """A local CA and certificates per role for mutual TLS (deploy/launch/certs.py); --revoke
     lists names the routers must deny."""
     from common.security import ROLES
-    from deploy.certs import CertError, make_certs, revoke
+    from deploy.launch.certs import CertError, make_certs, revoke
     try:
         if args.revoke:
             accepted = []
@@ -166,7 +189,7 @@ def cmd_certs(args: argparse.Namespace, cfg: Config) -> int:
 
 def cmd_swap(args: argparse.Namespace, cfg: Config) -> int:
     """Start a planner instance beside the running one and hand it the authority."""
-    from deploy.swap import SwapError, promote, swap
+    from deploy.launch.swap import SwapError, promote, swap
     cfg = with_identity(cfg, "operator")
     try:
         if args.to:
@@ -182,7 +205,7 @@ def cmd_swap(args: argparse.Namespace, cfg: Config) -> int:
 
 
 def cmd_run(args: argparse.Namespace, cfg: Config) -> int:
-    from deploy.runner import run_episode
+    from deploy.sim.runner import run_episode
     result = run_episode(cfg)
     print(json.dumps(result.summary(cfg)), flush=True)
     return 0 if result.outcome == "success" else 1
@@ -190,12 +213,12 @@ def cmd_run(args: argparse.Namespace, cfg: Config) -> int:
 
 def cmd_scenario(args: argparse.Namespace, cfg: Config) -> int:
     """show: the scenario's start, goal and obstacles as JSON (--plot writes its picture);
-    export: its scenario file; generate: a procedural world (deploy/generate.py); set: the
+    export: its scenario file; generate: a procedural world (deploy/sim/generate.py); set: the
     benchmark set of generated worlds, split into a tuning half and a held-out half."""
     from dataclasses import asdict
 
     from common.scenarios import ScenarioError, save_spec, scenario_of, spec_of, spec_toml
-    from deploy.generate import GenerateError, generate, write_set
+    from deploy.sim.generate import GenerateError, generate, write_set
     try:
         if args.action == "generate":
             spec = generate(cfg, args.kind or "", 1 if args.seed is None else args.seed,
@@ -226,14 +249,14 @@ def cmd_scenario(args: argparse.Namespace, cfg: Config) -> int:
                       "start": asdict(scn.start), "goal": asdict(scn.goal),
                       "obstacles": [asdict(o) for o in scn.obstacles]}, indent=1))
     if args.plot:
-        from deploy.plots import plot_scenario
+        from deploy.analysis.plots import plot_scenario
         plot_scenario(cfg, cfg.episode.scenario, Path(args.plot))
     return 0
 
 
 def cmd_bench(args: argparse.Namespace, cfg: Config) -> int:
-    from deploy import bench
-    from deploy.experiment import parse_list
+    from deploy.bench import main as bench
+    from deploy.sim.experiment import parse_list
     samples = args.samples_list or ("800" if args.what == "pipeline" else "400,800,1000,4000")
     controllers = args.controllers or ("va" if args.what == "pipeline" else "va,deterministic")
     return bench.main(cfg, args.what, parse_list(samples, int), parse_list(controllers),
@@ -243,7 +266,7 @@ def cmd_bench(args: argparse.Namespace, cfg: Config) -> int:
 
 def cmd_router(args: argparse.Namespace, cfg: Config) -> int:
     """A standalone router until Ctrl-C (services on several machines connect to it): a
-    site's JSON5 file (`--config deploy/sites/*.json5`) or the bus settings, secured with
+    site's JSON5 file (`--config deploy/configs/*.json5`) or the bus settings, secured with
     bus.certs or bus.credentials; listening on loopback unless told otherwise."""
     import dataclasses
 
@@ -275,7 +298,8 @@ def cmd_router(args: argparse.Namespace, cfg: Config) -> int:
 
 def cmd_health(args: argparse.Namespace, cfg: Config) -> int:
     """Every live service instance of the vehicle and its health counters, one JSON line each."""
-    from common.bus import ZenohTransport, admin_key, alive_instances, query_json
+    from common.bus import ZenohTransport, alive_instances, query_json
+    from common.topics import admin_key
     bus = ZenohTransport.open(with_identity(cfg, "viewer").bus)
     try:
         found = sorted(alive_instances(bus, cfg.episode.vehicle))
@@ -293,14 +317,15 @@ def cmd_health(args: argparse.Namespace, cfg: Config) -> int:
 
 
 def cmd_experiment(args: argparse.Namespace, cfg: Config) -> int:
-    from deploy.experiment import ExperimentError, expand_scenarios, experiment, parse_list
-    signal.signal(signal.SIGTERM, _interrupt)     # SIGTERM unwinds like Ctrl-C: workers stop
+    from deploy.analysis.summary import write_summary
+    from deploy.sim.experiment import ExperimentError, expand_scenarios, experiment, parse_list
+    _interrupt_on_sigterm()
     try:
-        summary = experiment(cfg, expand_scenarios(parse_list(args.scenarios)),
-                             parse_list(args.controllers),
-                             parse_list(args.samples_list, int), args.runs, args.seed_base,
-                             Path(args.out), plots=not args.no_plots, progress=not args.quiet,
-                             jobs=args.jobs)
+        runs = experiment(cfg, expand_scenarios(parse_list(args.scenarios)),
+                          parse_list(args.controllers), parse_list(args.samples_list, int),
+                          args.runs, args.seed_base, Path(args.out), progress=not args.quiet,
+                          jobs=args.jobs)
+        summary = write_summary(cfg, runs, Path(args.out), plots=not args.no_plots)
     except ExperimentError as exc:
         print(f"vamppi experiment: {exc}", file=sys.stderr)
         return 2
@@ -322,13 +347,9 @@ def cmd_config(args: argparse.Namespace, cfg: Config) -> int:
     return 0
 
 
-def _interrupt(*_: object) -> None:
-    raise KeyboardInterrupt
-
-
 def cmd_up(args: argparse.Namespace, cfg: Config) -> int:
-    from deploy.launch import up
-    signal.signal(signal.SIGTERM, _interrupt)     # SIGTERM unwinds like Ctrl-C: children stop
+    from deploy.launch.up import up
+    _interrupt_on_sigterm()
     try:
         summary = up(cfg, overrides_from_args(args), args.config, timeout_s=args.wall_timeout,
                      record=args.record, secure=not args.insecure)
@@ -341,11 +362,10 @@ def cmd_up(args: argparse.Namespace, cfg: Config) -> int:
 
 def cmd_record(args: argparse.Namespace, cfg: Config) -> int:
     """Record every sample under the key expression until Ctrl-C / SIGTERM / --duration."""
-    from common.bus import PREFIX, ZenohTransport, open_session
-    from deploy.recording import Recorder, live_service_configs, recording_metadata
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    from common.bus import ZenohTransport, open_session
+    from common.topics import PREFIX
+    from deploy.recording.record import Recorder, live_service_configs, recording_metadata
+    stop = _stop_event()
     keys = args.keys or f"{PREFIX}/{cfg.episode.vehicle}/**"
     log = logging.getLogger(__name__)
     with open_session(with_identity(cfg, "recorder").bus) as session:
@@ -364,7 +384,7 @@ def cmd_record(args: argparse.Namespace, cfg: Config) -> int:
 
 
 def cmd_recover(args: argparse.Namespace, cfg: Config) -> int:
-    from deploy.recording import is_complete, recover
+    from deploy.recording.record import is_complete, recover
     src = Path(args.file)
     out = Path(args.output) if args.output else src.with_suffix(".recovered.mcap")
     if is_complete(src) and not args.force:
@@ -377,10 +397,10 @@ def cmd_recover(args: argparse.Namespace, cfg: Config) -> int:
 
 
 def cmd_replay(args: argparse.Namespace, cfg: Config) -> int:
-    from deploy.experiment import parse_list
+    from deploy.sim.experiment import parse_list
     topics = parse_list(args.topics) if args.topics else None
     if args.feed:
-        from deploy.replay import feed
+        from deploy.recording.replay import feed
 
         def progress(r: dict[str, Any]) -> None:
             n = sum(r["compared"].values())
@@ -403,10 +423,8 @@ def cmd_replay(args: argparse.Namespace, cfg: Config) -> int:
         print(f"first divergence: {div}", file=sys.stderr)
         return 1
     from common.bus import open_session
-    from deploy.replay import replay
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    from deploy.recording.replay import replay
+    stop = _stop_event()
     with open_session(cfg.bus) as session:
         report = replay(session, args.file, args.rate, topics, args.loop, args.start_offset,
                         stop)
@@ -415,7 +433,7 @@ def cmd_replay(args: argparse.Namespace, cfg: Config) -> int:
 
 
 def cmd_timing(args: argparse.Namespace, cfg: Config) -> int:
-    from deploy import timing
+    from deploy.recording import timing
     result = timing.analyse(args.file)
     if args.plots:
         for path in timing.plots(result, args.plots):
@@ -428,7 +446,7 @@ def experiment_runs(args: argparse.Namespace, given: str, cfg: Config
                     ) -> tuple[Path, Config, list[dict[str, Any]]]:
     """An experiment's runs.jsonl (`given`, or its directory), the configuration to read it
     with (its own config.toml, unless --config is given) and its runs (--controller's)."""
-    from deploy.experiment import read_runs
+    from deploy.sim.experiment import read_runs
     path = Path(given)
     if path.is_dir():
         path = path / "runs.jsonl"
@@ -444,7 +462,7 @@ def experiment_runs(args: argparse.Namespace, given: str, cfg: Config
 
 def cmd_reveal(args: argparse.Namespace, cfg: Config) -> int:
     """First sightings of each (hidden) obstacle along the paths of an experiment's runs."""
-    from deploy.reveal import reveal_runs, table
+    from deploy.analysis.reveal import reveal_runs, table
     _, cfg, runs = experiment_runs(args, args.runs, cfg)
     rows = reveal_runs(cfg, runs, "all" if args.all_obstacles else "hidden")
     print(json.dumps(rows, indent=1) if args.json else table(rows))
@@ -452,9 +470,9 @@ def cmd_reveal(args: argparse.Namespace, cfg: Config) -> int:
 
 
 def cmd_collisions(args: argparse.Namespace, cfg: Config) -> int:
-    """What each collision of one or more experiments was on (deploy/collisions.py): one
+    """What each collision of one or more experiments was on (deploy/analysis/collisions.py): one
     table over all of them (a table of record split over two directories reads as one)."""
-    from deploy.collisions import attribute, counts, load_saved, save, table
+    from deploy.analysis.collisions import attribute, counts, load_saved, save, table
     rows = []
     for given in args.runs:
         path, run_cfg, runs = experiment_runs(args, given, cfg)
@@ -474,18 +492,14 @@ def cmd_collisions(args: argparse.Namespace, cfg: Config) -> int:
 
 
 def cmd_export_foxglove(args: argparse.Namespace, cfg: Config) -> int:
-    from deploy.foxglove import export
+    from deploy.recording.foxglove import export
     report = export(args.input, args.output, args.map_stride, args.rollouts)
     print(json.dumps(report), flush=True)
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="vamppi", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("-v", "--verbose", action="store_true")
-    sub = parser.add_subparsers(dest="command", required=True)
-
+def _pipeline_commands(sub: Any) -> None:
+    """The pipeline on the bus: launch it, one service, a router, health, swaps, certs."""
     p = sub.add_parser("up", help="embedded router + every service as a process; one episode")
     add_config_args(p)
     p.add_argument("--wall-timeout", type=float, default=900.0,
@@ -496,6 +510,70 @@ def build_parser() -> argparse.ArgumentParser:
                         "certificates made on first use, docs/security.md)")
     p.set_defaults(func=cmd_up)
 
+    p = sub.add_parser("service", help="run one service on its own")
+    p.add_argument("name", choices=sorted(SERVICE_MAINS))
+    p.add_argument("--instance", default="0", help="instance id (liveliness, health)")
+    p.add_argument("--stop-with-parent", action="store_true",
+                   help="stop when the parent process dies (set by vamppi up)")
+    p.add_argument("--role", choices=("active", "standby", "candidate", "replay"),
+                   default="active", help="planner: what it does (docs/hotswap.md)")
+    p.add_argument("--standby", action="store_true",
+                   help="planner: a hot standby (--role standby)")
+    p.add_argument("--take-over-after", type=float, default=0.0, metavar="S",
+                   help="planner, candidate: solve in shadow for S seconds, then ask for "
+                        "the authority")
+    p.add_argument("--take-over-at", type=float, default=0.0, metavar="T",
+                   help="planner, candidate: ask for the authority once the episode reaches "
+                        "T (simulation seconds)")
+    p.add_argument("--keep-old", action="store_true",
+                   help="planner, candidate: the planner it replaces stands by, not retires")
+    add_config_args(p)
+    add_bus_args(p)
+    p.set_defaults(func=cmd_service)
+
+    p = sub.add_parser("router", help="a standalone Zenoh router (default tcp/127.0.0.1:7447, "
+                                      "this machine only; --listen tcp/0.0.0.0:7447 for others)")
+    add_config_args(p)
+    add_bus_args(p)
+    p.set_defaults(func=cmd_router)
+
+    p = sub.add_parser("health", help="live service instances and their counters")
+    add_config_args(p)
+    add_bus_args(p)
+    p.set_defaults(func=cmd_health)
+
+    p = sub.add_parser("swap", help="hot-swap the planner: a new instance takes over")
+    p.add_argument("service", choices=("planner",))
+    p.add_argument("--instance", help="the new instance's id (default: a fresh one)")
+    p.add_argument("--to", metavar="INSTANCE",
+                   help="hand the authority to this running planner instance (a standby) "
+                        "instead of starting one")
+    p.add_argument("--shadow", type=float, default=0.0, metavar="S",
+                   help="solve in shadow for S seconds before taking over (plans on "
+                        "vamppi/<vehicle>/planner/shadow)")
+    p.add_argument("--timeout", type=float, default=120.0,
+                   help="give up (the old planner keeps control) after this many seconds")
+    p.add_argument("--keep-old", action="store_true",
+                   help="the replaced planner stands by instead of retiring")
+    add_config_args(p)
+    add_bus_args(p)
+    p.set_defaults(func=cmd_swap)
+
+    p = sub.add_parser("certs", help="a local CA and a certificate per role (mutual TLS)")
+    p.add_argument("dir", help="where the CA and certificates are written (the CA is kept)")
+    p.add_argument("--name", action="append", metavar="ROLE[-INSTANCE]",
+                   help="a certificate to make (repeatable; default: one per role)")
+    p.add_argument("--host", action="append", default=["localhost", "127.0.0.1"],
+                   help="a name or address the certificates are valid for (repeatable)")
+    p.add_argument("--days", type=int, default=365)
+    p.add_argument("--revoke", action="append", metavar="NAME",
+                   help="deny this certificate from now on: listed in DIR/revoked.txt, its "
+                        "files deleted; restart the routers (repeatable)")
+    p.set_defaults(func=cmd_certs)
+
+
+def _recording_commands(sub: Any) -> None:
+    """Recordings: record, recover, replay, timing, export to Foxglove."""
     p = sub.add_parser("record", help="record bus traffic to MCAP (Ctrl-C stops)")
     p.add_argument("-o", "--output", required=True, metavar="FILE.mcap")
     p.add_argument("--keys", help="key expression (default vamppi/<vehicle>/**)")
@@ -544,78 +622,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rollouts", type=int, default=30, help="sampled rollouts drawn per plan")
     p.set_defaults(func=cmd_export_foxglove)
 
-    p = sub.add_parser("reveal", help="when each hidden obstacle was first seen in a run, "
-                                      "and whether the vehicle could still stop")
-    p.add_argument("runs", help="an experiment's runs.jsonl (or its directory)")
-    p.add_argument("--controller", dest="only", help="only these controllers (a,b)")
-    p.add_argument("--all-obstacles", action="store_true", help="every obstacle, not only hidden")
-    p.add_argument("--json", action="store_true", help="JSON rows instead of a table")
-    p.add_argument("--config", help="TOML file merged over the defaults")
-    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
-    p.set_defaults(func=cmd_reveal)
 
-    p = sub.add_parser("collisions", help="what each collision of an experiment was on, and "
-                                          "how long the map had shown it")
-    p.add_argument("runs", nargs="+",
-                   help="experiments' runs.jsonl (or their directories): one table over all")
-    p.add_argument("--controller", dest="only", help="only these controllers (a,b)")
-    p.add_argument("--rerun", action="store_true",
-                   help="run again the collisions recorded without attribution (older records)")
-    p.add_argument("--json", action="store_true", help="JSON rows instead of a table")
-    p.add_argument("--config", help="TOML file merged over the defaults")
-    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
-    p.set_defaults(func=cmd_collisions)
-
-    p = sub.add_parser("service", help="run one service on its own")
-    p.add_argument("name", choices=sorted(SERVICE_MAINS))
-    p.add_argument("--instance", default="0", help="instance id (liveliness, health)")
-    p.add_argument("--stop-with-parent", action="store_true",
-                   help="stop when the parent process dies (set by vamppi up)")
-    p.add_argument("--role", choices=("active", "standby", "candidate", "replay"),
-                   default="active", help="planner: what it does (docs/hotswap.md)")
-    p.add_argument("--standby", action="store_true",
-                   help="planner: a hot standby (--role standby)")
-    p.add_argument("--take-over-after", type=float, default=0.0, metavar="S",
-                   help="planner, candidate: solve in shadow for S seconds, then ask for "
-                        "the authority")
-    p.add_argument("--take-over-at", type=float, default=0.0, metavar="T",
-                   help="planner, candidate: ask for the authority once the episode reaches "
-                        "T (simulation seconds)")
-    p.add_argument("--keep-old", action="store_true",
-                   help="planner, candidate: the planner it replaces stands by, not retires")
-    add_config_args(p)
-    add_bus_args(p)
-    p.set_defaults(func=cmd_service)
-
-    p = sub.add_parser("certs", help="a local CA and a certificate per role (mutual TLS)")
-    p.add_argument("dir", help="where the CA and certificates are written (the CA is kept)")
-    p.add_argument("--name", action="append", metavar="ROLE[-INSTANCE]",
-                   help="a certificate to make (repeatable; default: one per role)")
-    p.add_argument("--host", action="append", default=["localhost", "127.0.0.1"],
-                   help="a name or address the certificates are valid for (repeatable)")
-    p.add_argument("--days", type=int, default=365)
-    p.add_argument("--revoke", action="append", metavar="NAME",
-                   help="deny this certificate from now on: listed in DIR/revoked.txt, its "
-                        "files deleted; restart the routers (repeatable)")
-    p.set_defaults(func=cmd_certs)
-
-    p = sub.add_parser("swap", help="hot-swap the planner: a new instance takes over")
-    p.add_argument("service", choices=("planner",))
-    p.add_argument("--instance", help="the new instance's id (default: a fresh one)")
-    p.add_argument("--to", metavar="INSTANCE",
-                   help="hand the authority to this running planner instance (a standby) "
-                        "instead of starting one")
-    p.add_argument("--shadow", type=float, default=0.0, metavar="S",
-                   help="solve in shadow for S seconds before taking over (plans on "
-                        "vamppi/<vehicle>/planner/shadow)")
-    p.add_argument("--timeout", type=float, default=120.0,
-                   help="give up (the old planner keeps control) after this many seconds")
-    p.add_argument("--keep-old", action="store_true",
-                   help="the replaced planner stands by instead of retiring")
-    add_config_args(p)
-    add_bus_args(p)
-    p.set_defaults(func=cmd_swap)
-
+def _simulation_commands(sub: Any) -> None:
+    """In-process: one episode, the Monte-Carlo experiment, scenarios."""
     p = sub.add_parser("run", help="one lockstep episode in-process, without the bus")
     add_config_args(p)
     p.set_defaults(func=cmd_run)
@@ -636,9 +645,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "then measured with the others competing")
     p.add_argument("--no-plots", action="store_true")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.add_argument("--config", help="TOML file merged over the defaults")
-    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
-    add_preset_arg(p)
+    add_config_args(p, shorthands=False)
     p.set_defaults(func=cmd_experiment)
 
     p = sub.add_parser("scenario", help="a scenario as JSON and its picture; its file; "
@@ -649,7 +656,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "generate: the world of --kind and --seed (default 1); set: "
                         "--per-kind worlds of every kind into OUT/tune and OUT/heldout")
     p.add_argument("--plot", metavar="FILE.png", help="show: write the top-down picture")
-    p.add_argument("--kind", help="generate: the world's kind (deploy/generate.py KINDS); "
+    p.add_argument("--kind", help="generate: the world's kind (deploy/sim/generate.py KINDS); "
                                   "set: only these kinds (comma-separated)")
     p.add_argument("--out", help="export, generate: the file (default: print it); "
                                  "set: the directory")
@@ -662,6 +669,32 @@ def build_parser() -> argparse.ArgumentParser:
     add_config_args(p)
     p.set_defaults(func=cmd_scenario)
 
+
+def _analysis_commands(sub: Any) -> None:
+    """An experiment's runs taken apart."""
+    p = sub.add_parser("reveal", help="when each hidden obstacle was first seen in a run, "
+                                      "and whether the vehicle could still stop")
+    p.add_argument("runs", help="an experiment's runs.jsonl (or its directory)")
+    p.add_argument("--controller", dest="only", help="only these controllers (a,b)")
+    p.add_argument("--all-obstacles", action="store_true", help="every obstacle, not only hidden")
+    p.add_argument("--json", action="store_true", help="JSON rows instead of a table")
+    add_config_args(p, shorthands=False)
+    p.set_defaults(func=cmd_reveal)
+
+    p = sub.add_parser("collisions", help="what each collision of an experiment was on, and "
+                                          "how long the map had shown it")
+    p.add_argument("runs", nargs="+",
+                   help="experiments' runs.jsonl (or their directories): one table over all")
+    p.add_argument("--controller", dest="only", help="only these controllers (a,b)")
+    p.add_argument("--rerun", action="store_true",
+                   help="run again the collisions recorded without attribution (older records)")
+    p.add_argument("--json", action="store_true", help="JSON rows instead of a table")
+    add_config_args(p, shorthands=False)
+    p.set_defaults(func=cmd_collisions)
+
+
+def _tool_commands(sub: Any) -> None:
+    """Benchmarks and the configuration."""
     p = sub.add_parser("bench", help="speed benchmarks (a table, or JSON with --json)")
     p.add_argument("what", choices=("planner", "mapper", "bus", "pipeline", "peer", "record",
                                     "faults", "swaps", "security"))
@@ -676,26 +709,26 @@ def build_parser() -> argparse.ArgumentParser:
                    help="pipeline: record each case (vamppi timing analyses the same run)")
     p.add_argument("--reps", type=int, default=20, help="timed repetitions per case")
     p.add_argument("--json", action="store_true", help="one JSON document instead of a table")
-    p.add_argument("--config", help="TOML file merged over the defaults")
-    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
+    add_config_args(p, shorthands=False)
     p.set_defaults(func=cmd_bench)
-
-    p = sub.add_parser("router", help="a standalone Zenoh router (default tcp/127.0.0.1:7447, "
-                                      "this machine only; --listen tcp/0.0.0.0:7447 for others)")
-    add_config_args(p)
-    add_bus_args(p)
-    p.set_defaults(func=cmd_router)
-
-    p = sub.add_parser("health", help="live service instances and their counters")
-    add_config_args(p)
-    add_bus_args(p)
-    p.set_defaults(func=cmd_health)
 
     p = sub.add_parser("config", help="print the effective configuration")
     p.add_argument("--markdown", action="store_true",
                    help="print docs/parameters.md (every parameter, default, meaning)")
     add_config_args(p)
     p.set_defaults(func=cmd_config)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="vamppi", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("-v", "--verbose", action="store_true")
+    sub = parser.add_subparsers(dest="command", required=True)
+    _pipeline_commands(sub)
+    _recording_commands(sub)
+    _simulation_commands(sub)
+    _analysis_commands(sub)
+    _tool_commands(sub)
     return parser
 
 
@@ -709,7 +742,7 @@ def main(argv: list[str] | None = None) -> Any:
     except ConfigError as exc:
         print(f"vamppi: bad configuration: {exc}", file=sys.stderr)
         return 2
-    from deploy.recording import RecordingError
+    from deploy.recording.record import RecordingError
     try:
         return args.func(args, cfg)
     except (RecordingError, FileNotFoundError, IsADirectoryError) as exc:

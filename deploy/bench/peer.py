@@ -31,6 +31,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from common.config import Config
+from deploy.bench.device import device_info, heading
+from deploy.bench.kernels import planner_case, planner_inputs
 from services.planner import mppi
 from services.planner.costs import (
     CostParams,
@@ -145,7 +147,6 @@ def bench_peer(cfg: Config, samples: list[int], reps: int) -> dict[str, Any]:
                            "pip install -e '.[peer]' (torch, pytorch-mppi)") from exc
     from importlib.metadata import version
 
-    from deploy.bench import device_info, planner_case, planner_inputs
     inputs = planner_inputs(cfg)
     x0, u0, goal, mean, var, origin, res = inputs
     device = "cuda" if torch.cuda.is_available() and jax.default_backend() == "gpu" else "cpu"
@@ -220,3 +221,16 @@ def bench_peer(cfg: Config, samples: list[int], reps: int) -> dict[str, Any]:
                          "horizon": cfg.planner.horizon, "reps": reps,
                          "cost_max_rel_diff": agreement},
             "cases": cases}
+def peer_table(result: dict[str, Any]) -> str:
+    """`vamppi bench peer`'s result as a markdown table."""
+    head = heading(result)
+    ours = {c["samples"]: c["median_ms"] for c in result["cases"]
+            if c["implementation"] == "vamppi"}
+    lines = [f"{head}; torch {result['torch']} on {result['torch_device']} "
+             f"({result['torch_threads']} threads), pytorch_mppi {result['pytorch_mppi']}",
+             "", "| implementation | K | median ms | p95 ms | time / ours |",
+             "|---|---|---|---|---|"]
+    for c in result["cases"]:
+        lines.append(f"| {c['implementation']} | {c['samples']} | {c['median_ms']:.1f} "
+                     f"| {c['p95_ms']:.1f} | {c['median_ms'] / ours[c['samples']]:.2f} |")
+    return "\n".join(lines)

@@ -3,13 +3,13 @@
 For every scenario x controller x sample count, `runs` episodes with planner
 seeds `seed, seed + 1, ...` on the same scenario (its terrain fixed by
 `episode.scenario_seed`). The same cores as the services, composed by
-`deploy.runner`.
+`deploy.sim.runner`.
 
 Output directory:
   runs.jsonl     one record per finished run (outcome, time to goal, 10 Hz path
                  (t, X, Y, V, heading),
                  solve times; a collision's obstacles and when the map first showed
-                 them: deploy/collisions.py), appended and fsynced as each ends:
+                 them: deploy/analysis/collisions.py), appended and fsynced as each ends:
                  an interrupted experiment keeps its finished runs and resumes
                  where it stopped (a torn last line is ignored); each record
                  carries the configuration's digest, and resuming with another
@@ -18,11 +18,8 @@ Output directory:
                  but one scenario and its layout pinned: saved_config):
                  `--config DIR/config.toml` resumes or reruns with it,
                  `vamppi reveal DIR` reads it
-  summary.json   per scenario/controller/samples: counts of each outcome and the
-                 time to goal over successful runs
-  summary.md     the same as a markdown table, the paper's figures beside ours; then
-                 what each collision was on (deploy/collisions.py)
-  *.png          the plots of `deploy.plots`
+  summary.*, *.png  what the runs show (deploy.analysis.summary), written by the
+                 command after the runs
 
 With `jobs` > 1 the runs are spread over that many worker processes (each its own
 JAX runtime and cores, pinned to its share of this process's CPUs when there are
@@ -39,7 +36,7 @@ import logging
 import multiprocessing
 import os
 import signal
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -49,7 +46,7 @@ from tqdm import tqdm
 from common.config import Config, config_toml
 from common.process import when_orphaned
 from common.scenarios import build_scenario, resolve_layout
-from deploy.runner import Cores, run_episode
+from deploy.sim.runner import Cores, run_episode
 from services.plant.core import OUTCOMES
 from services.plant.dynamics import S
 
@@ -168,143 +165,6 @@ def expand_scenarios(items: list[str]) -> list[str]:
     return out
 
 
-def group_of(r: dict[str, Any], by: str) -> str:
-    """The row a record is summarised in: its scenario, its world's kind, or "all"."""
-    if by == "scenario":
-        return r["scenario"]
-    if by == "kind":
-        return r.get("kind") or r["scenario"]
-    return "all"
-
-
-def summarize(runs: Iterable[dict[str, Any]], by: str = "scenario") -> list[dict[str, Any]]:
-    """Per group (`by`: scenario, kind or all) x controller x samples: the count of each
-    outcome and the time to goal over the successful runs (mean, std, median); the
-    median of the per-run ratios to the prescient controller's time on the same world and
-    seed, where both succeeded; Fisher's exact test of the collision counts against each
-    other controller's in the group."""
-    runs = list(runs)
-    groups: dict[tuple, list[dict[str, Any]]] = {}
-    for r in runs:
-        groups.setdefault((group_of(r, by), r["controller"], r["samples"]), []).append(r)
-    prescient = {(r["scenario"], r["samples"], r["seed"]): r["time_to_goal_s"] for r in runs
-                 if r["controller"] == "prescient" and r["outcome"] == "success"}
-    out = []
-    for (group, controller, samples), rs in sorted(groups.items()):
-        ttg = [r["time_to_goal_s"] for r in rs if r["outcome"] == "success"]
-        row: dict[str, Any] = {by: group, "controller": controller, "samples": samples,
-                               "runs": len(rs)}
-        if by != "scenario":
-            row["worlds"] = len({r["scenario"] for r in rs})
-        row.update({o: sum(r["outcome"] == o for r in rs) for o in OUTCOMES})
-        row["time_to_goal_mean_s"] = round(float(np.mean(ttg)), 3) if ttg else None
-        row["time_to_goal_std_s"] = round(float(np.std(ttg)), 3) if ttg else None
-        row["time_to_goal_median_s"] = round(float(np.median(ttg)), 3) if ttg else None
-        ratios = [r["time_to_goal_s"] / prescient[key] for r in rs if r["outcome"] == "success"
-                  and (key := (r["scenario"], r["samples"], r["seed"])) in prescient]
-        row["ratio_to_prescient_median"] = (round(float(np.median(ratios)), 3) if ratios
-                                            and controller != "prescient" else None)
-        out.append(row)
-    for row in out:
-        mine = (row[by], row["samples"])
-        row["collision_p"] = {
-            o["controller"]: round(fisher_exact(row["collision"], row["runs"] - row["collision"],
-                                                o["collision"], o["runs"] - o["collision"]), 6)
-            for o in out if (o[by], o["samples"]) == mine and o is not row}
-    return out
-
-
-def fisher_exact(a: int, b: int, c: int, d: int) -> float:
-    """Two-sided p of Fisher's exact test on the table [[a, b], [c, d]]: the probability,
-    with the margins fixed, of a table no more likely than this one."""
-    from math import comb
-    n1, k, n = a + b, a + c, a + b + c + d
-    total = comb(n, k)
-
-    def prob(x: int) -> float:
-        return comb(n1, x) * comb(n - n1, k - x) / total
-    p0 = prob(a)
-    lo, hi = max(0, k - (n - n1)), min(k, n1)
-    return min(1.0, sum(p for x in range(lo, hi + 1) if (p := prob(x)) <= p0 * (1 + 1e-7)))
-
-
-# The paper's reported figures (Section "Results and Discussion"): failure percentage
-# of 100 runs and how many of those failures were collisions; time to goal mean
-# and std over successful runs, s. A key is absent where the paper gives no number.
-PAPER: dict[tuple[str, str, int], dict[str, Any]] = {
-    ("offroad", "deterministic", 400): {"failure_pct": 92, "collision_pct": 92},
-    ("offroad", "prescient", 400): {"failure_pct": 6, "collision_pct": 0,
-                                    "time_to_goal": (12.2, 0.5)},
-    ("offroad", "va", 400): {"failure_pct": 16, "collision_pct": 0, "time_to_goal": (13.3, 0.4)},
-    ("alleyway", "deterministic", 400): {"failure_pct": 95, "collision_pct": 95},
-    ("alleyway", "prescient", 400): {"failure_pct": 3, "time_to_goal": (12.5, 0.5)},
-    ("alleyway", "va", 400): {"failure_pct": 9, "collision_pct": 4, "time_to_goal": (12.8, 0.4)},
-    ("alleyway", "va", 1000): {"failure_pct": 8, "collision_pct": 2},
-    ("alleyway", "va", 4000): {"failure_pct": 7, "collision_pct": 0},
-    ("alleyway", "deterministic", 4000): {"failure_pct": 100, "collision_pct": 100},
-    ("offroad", "deterministic", 4000): {"failure_pct": 100, "collision_pct": 100},
-}
-
-
-def markdown_table(summary: list[dict[str, Any]], by: str = "scenario") -> str:
-    """A summary (`summarize(runs, by)`) as a markdown table; per scenario, the paper's
-    figures beside ours."""
-    def pct(n: int, runs: int) -> str:
-        return f"{100.0 * n / runs:.0f} %"
-
-    paper_cols = by == "scenario"
-    head = (f"| {by} | controller | K | runs | success | collision | stopping | timeout "
-            "| time to goal, s | median, s | × prescient |")
-    lines = [head + (" paper: failures (collisions) | paper: time to goal, s |"
-                     if paper_cols else ""),
-             "|---" * (11 + 2 * paper_cols) + "|"]
-    for r in summary:
-        n = r["runs"]
-        ttg = "—"
-        if r["time_to_goal_mean_s"] is not None:
-            ttg = (f"{r['time_to_goal_mean_s']:.2f} ± {r['time_to_goal_std_s']:.2f}"
-                   if r["success"] > 1 else f"{r['time_to_goal_mean_s']:.2f}")
-        med = "—" if r.get("time_to_goal_median_s") is None else f"{r['time_to_goal_median_s']:.2f}"
-        ratio = ("—" if r.get("ratio_to_prescient_median") is None
-                 else f"{r['ratio_to_prescient_median']:.3f}")
-        line = (f"| {r[by]} | {r['controller']} | {r['samples']} | {n} | {pct(r['success'], n)} "
-                f"| {pct(r['collision'], n)} | {pct(r['stopping'], n)} | {pct(r['timeout'], n)} "
-                f"| {ttg} | {med} | {ratio} |")
-        if paper_cols:
-            paper = PAPER.get((r["scenario"], r["controller"], r["samples"]), {})
-            p_fail = (f"{paper['failure_pct']} %" + (f" ({paper['collision_pct']} %)"
-                                                     if "collision_pct" in paper else "")
-                      if "failure_pct" in paper else "—")
-            p_ttg = ("{} ± {}".format(*paper["time_to_goal"]) if "time_to_goal" in paper
-                     else "—")
-            line += f" {p_fail} | {p_ttg} |"
-        lines.append(line)
-    return "\n".join(lines) + "\n"
-
-
-def fisher_lines(summary: list[dict[str, Any]], by: str) -> str:
-    """Fisher's exact test of each controller's collisions against the others'."""
-    rows = [f"- {r[by]}, K = {r['samples']}: {r['controller']} against "
-            + ", ".join(f"{c} p = {p:.3g}" for c, p in sorted(r["collision_p"].items()))
-            for r in summary if r["controller"] == "va" and r["collision_p"]]
-    return ("\nCollisions, Fisher's exact test (two-sided):\n\n" + "\n".join(rows) + "\n"
-            if rows else "")
-
-
-def summary_markdown(runs: list[dict[str, Any]]) -> tuple[str, dict[str, Any]]:
-    """summary.md's tables (overall and per world kind where the runs span more than one
-    world, then per scenario) and the summaries they show."""
-    per = {"scenario": summarize(runs)}
-    text = ""
-    if len({r["scenario"] for r in runs}) > 1:
-        for by in ("all", "kind"):
-            per[by] = summarize(runs, by)
-            text += f"By {by if by == 'kind' else 'set'}:\n\n" + markdown_table(per[by], by) \
-                + fisher_lines(per[by], by) + "\n"
-        text += "By scenario:\n\n"
-    return text + markdown_table(per["scenario"]), per
-
-
 def run_one(cfg: Config, key: tuple, cores_cache: dict[tuple, Cores]) -> tuple[Config, Any]:
     """One run of an experiment, `key` its (scenario, controller, samples, seed): its
     configuration and its episode. The services' cores are kept in `cores_cache` per
@@ -318,23 +178,6 @@ def run_one(cfg: Config, key: tuple, cores_cache: dict[tuple, Cores]) -> tuple[C
             cores_cache.clear()
         cores_cache[key[:3]] = Cores.from_config(run_cfg)
     return run_cfg, run_episode(run_cfg, cores_cache[key[:3]])
-
-
-def collisions_section(cfg: Config, runs: list[dict[str, Any]], out: Path) -> str:
-    """summary.md's second table, what each collision was on (deploy/collisions.py; records
-    older than the `collision` field as `vamppi collisions DIR --rerun` left them); "" when
-    no run collided."""
-    from deploy import collisions
-    if not any(r["outcome"] == "collision" for r in runs):
-        return ""
-    try:
-        saved = collisions.load_saved(out)
-    except ValueError as exc:
-        log.warning("%s", exc)
-        saved = []
-    rows = collisions.attribute(cfg, runs, saved=saved)
-    return ("\nWhat the collisions were on (`vamppi collisions DIR`):\n\n"
-            + collisions.table(rows) + "\n")
 
 
 def _records_serial(cfg: Config, todo: list[tuple]) -> Iterator[dict[str, Any]]:
@@ -390,10 +233,10 @@ def _records_parallel(cfg: Config, todo: list[tuple], jobs: int) -> Iterator[dic
 
 
 def experiment(cfg: Config, scenarios: list[str], controllers: list[str], samples: list[int],
-               runs: int, seed: int, out: Path, plots: bool = True,
-               progress: bool = True, jobs: int = 1) -> list[dict[str, Any]]:
+               runs: int, seed: int, out: Path, progress: bool = True, jobs: int = 1
+               ) -> list[dict[str, Any]]:
     """Run what is missing from `out/runs.jsonl` (in `jobs` worker processes when more
-    than 1), then write the summary and plots."""
+    than 1) and return every run there; deploy.analysis.summary writes what they show."""
     out.mkdir(parents=True, exist_ok=True)
     runs_path = out / "runs.jsonl"
     existing = read_runs(runs_path)
@@ -431,18 +274,7 @@ def experiment(cfg: Config, scenarios: list[str], controllers: list[str], sample
             bar.update()
             bar.set_postfix_str(f"{rec['scenario']}/{rec['controller']}/{rec['samples']}: "
                                 f"{rec['outcome']}")
-    all_runs = read_runs(runs_path)
-    text, per = summary_markdown(all_runs)
-    summary = per["scenario"]
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    if len(per) > 1:
-        (out / "summary-kinds.json").write_text(json.dumps(per["kind"] + per["all"], indent=2)
-                                                + "\n")
-    (out / "summary.md").write_text(text + collisions_section(cfg, all_runs, out))
-    if plots:
-        from deploy import plots as plotting
-        plotting.plot_all(cfg, all_runs, summary, out)
-    return summary
+    return read_runs(runs_path)
 
 
 def parse_list(text: str, kind=str) -> list:

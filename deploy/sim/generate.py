@@ -17,7 +17,7 @@ How a world is drawn (`generate`): the kind draws start, goal and occluders from
 with nothing hidden it drives as the deterministic one would), and its path is the fast
 line; hidden obstacles go on it where the ground-truth camera, driven along it, first
 sees them closer than the distance to stop from the speed there (`place_hidden`,
-`deploy.reveal.stopping_distance`: the vehicle's brake limit and force rate). The world
+`deploy.analysis.reveal.stopping_distance`: the vehicle's brake limit and force rate). The world
 is kept if a free way round stays (the footprint's half width and a margin,
 `reachable`) and the prescient controller, now with the hidden obstacles, reaches the
 goal; else the next attempt is drawn. The world is reproducible from kind and seed with
@@ -184,7 +184,7 @@ def _drive(cfg: Config, spec: ScenarioSpec):
     import tempfile
 
     from common.scenarios import save_spec
-    from deploy.runner import run_episode
+    from deploy.sim.runner import run_episode
     with tempfile.TemporaryDirectory() as tmp:
         path = save_spec(spec, Path(tmp) / "world.toml")
         return run_episode(probe_config(cfg, str(path)))
@@ -196,7 +196,7 @@ def place_hidden(cfg: Config, rng: np.random.Generator, base: ScenarioSpec, path
     each where the camera driven along that line first sees it too late to stop from the
     speed it has there, or never before reaching it; clear of the occluders. () if no
     candidate qualifies."""
-    from deploy.reveal import first_sightings, poses_of_path
+    from deploy.analysis.reveal import first_sightings, poses_of_path
     want = 1 + int(rng.uniform() < 0.5)
     found: list[Obstacle] = []
     idx = [i for i in range(len(path)) if path[i, 3] >= 3.0

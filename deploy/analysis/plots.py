@@ -158,7 +158,7 @@ def plot_solve_time(runs: list[dict[str, Any]], out: Path) -> Path:
 
 def plot_visibility(cfg: Config, scenario: str, samples: int, seed: int, out: Path) -> Path:
     """One VA-MPPI run: the map variance and the plan at four moments."""
-    from deploy.runner import run_episode
+    from deploy.sim.runner import run_episode
     run_cfg = cfg.replace(**{"episode.scenario": scenario, "planner.controller": "va",
                              "planner.samples": samples, "episode.seed": seed})
     ticks = frozenset(range(0, int(run_cfg.episode.timeout_s / run_cfg.planner.dt_s), 15))

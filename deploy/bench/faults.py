@@ -1,7 +1,7 @@
 """Faults, for real: the tools `tests/test_faults.py` and `vamppi bench faults` use.
 
 - `Pipeline`: a `vamppi router` process, the services as `vamppi service` processes and
-  an observer that records the bus (deploy.recording.Recorder) and follows states,
+  an observer that records the bus (deploy.recording.record.Recorder) and follows states,
   events and heartbeats live;
 - `Up`: `vamppi up` as a process, its stderr read live, its children found by name;
 - `Rogue`: another client that sends hostile variants of real messages (`hostile`);
@@ -29,20 +29,13 @@ from typing import Any
 
 import numpy as np
 
-from common.bus import (
-    SERVICES,
-    ZenohTransport,
-    alive_instances,
-    heartbeat_key,
-    open_session,
-    query_json,
-    topic_key,
-)
+from common.bus import ZenohTransport, alive_instances, open_session, query_json
 from common.config import BusConfig, Config, load_config
 from common.messages import DecodeError, Event, Heartbeat, State, decode, on_decoded
-from deploy.certs import make_certs
-from deploy.launch import free_port, service_command
-from deploy.recording import Recorder, iter_messages, recording_metadata
+from common.topics import SERVICES, heartbeat_key, topic_key
+from deploy.launch.certs import make_certs
+from deploy.launch.up import free_port, service_command
+from deploy.recording.record import Recorder, iter_messages, recording_metadata
 from services.plant.protocol import OUTCOMES
 
 PY = sys.executable
@@ -87,7 +80,7 @@ class Proc:
 
 class Pipeline:
     """A router process, services as processes and an observer that records everything
-    (plain and recovering subscriptions, deploy.recording.Recorder) and follows the
+    (plain and recovering subscriptions, deploy.recording.record.Recorder) and follows the
     states and events live."""
 
     def __init__(self, overrides: list[str], tmp: Path, listen: list[str] | None = None,
@@ -129,7 +122,7 @@ class Pipeline:
 
     # processes ----------------------------------------------------------------
     def start_router(self) -> Proc:
-        args = [PY, "-m", "deploy.cli", "router", *self.router_args]
+        args = [PY, "-m", "deploy", "router", *self.router_args]
         for ep in self.listen:
             args += ["--listen", ep]
         log = self.tmp / "router.log"
@@ -229,7 +222,7 @@ class Pipeline:
         return self.outcome()
 
     def health(self, service: str, instance: str = "0") -> dict[str, Any]:
-        from common.bus import admin_key
+        from common.topics import admin_key
         got = query_json(self.bus, admin_key(self.cfg.episode.vehicle, service, instance,
                                              "health"))
         return got[0] if got else {}
@@ -463,7 +456,7 @@ class Up:
 
     def __init__(self, args: list[str], vehicle: str):
         self.vehicle = vehicle
-        self.p = subprocess.Popen([PY, "-m", "deploy.cli", "up", "--vehicle", vehicle, *args],
+        self.p = subprocess.Popen([PY, "-m", "deploy", "up", "--vehicle", vehicle, *args],
                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         self.lines: list[tuple[float, str]] = []
         self._t = threading.Thread(target=self._read, daemon=True)
@@ -572,7 +565,7 @@ class Namespace:
         self.remove()
 
 
-SITES = Path(__file__).resolve().parent / "sites"
+SITES = Path(__file__).resolve().parents[1] / "configs"
 SITE_ENDPOINT = "tls/127.0.0.1:7447"          # a site's router, to the services of its site
 
 
@@ -593,7 +586,7 @@ class Sites:
 
     def service(self, name: str, **kw: Any) -> Proc:
         """`name` in its site: plant and sensor in A, mapper and planner in B, each a client
-        of its own site's router (deploy/sites/site-*.toml)."""
+        of its own site's router (deploy/configs/site-*.toml)."""
         site = "a" if name in ("plant", "sensor") else "b"
         ns = self.a if site == "a" else self.b
         return self.pipeline.service(name, endpoint=SITE_ENDPOINT, prefix=ns.prefix,
@@ -618,7 +611,7 @@ def wait_for_line(proc: Proc, text: str, timeout: float = 30.0) -> None:
 @contextlib.contextmanager
 def two_sites(overrides: list[str], tmp: Path) -> Iterator[Sites]:
     """Site A (plant, sensor) and site B (mapper, planner), each in its own network
-    namespace with its own router started from deploy/sites/site-*.json5; the routers
+    namespace with its own router started from deploy/configs/site-*.json5; the routers
     linked over a veth pair between the two namespaces. Every link is mutual TLS with
     certificates made here, and both routers enforce the generated rules. The observer
     (a recorder's certificate) is a client of site A's router from this namespace; site B's
@@ -635,7 +628,7 @@ def two_sites(overrides: list[str], tmp: Path) -> Iterator[Sites]:
                       router_args=["--config", str(SITES / "site-a.json5"), *sec],
                       observer=BusConfig("client", (here,), (), False, str(certs),
                                          "recorder")) as p:
-            rb = Proc([PY, "-m", "deploy.cli", "router", "--config",
+            rb = Proc([PY, "-m", "deploy", "router", "--config",
                        str(SITES / "site-b.json5"), *sec, "--listen", SITE_ENDPOINT,
                        "--listen", f"tls/{b.ip}:7447", "--connect", f"tls/{wan_a}:7447"],
                       tmp / "router-b.log", prefix=b.prefix)
@@ -760,7 +753,7 @@ def supervised(service: str, sig: int, tmp: Path, reference: np.ndarray) -> dict
             and got.tobytes() == reference.tobytes()}
 
 
-def _plant_record(path: Path) -> tuple[list[State], list[Event]]:
+def plant_record(path: Path) -> tuple[list[State], list[Event]]:
     """The plant's states (one per stamp, in stamp order) and events of a recording,
     those that arrived late included."""
     states: dict[float, State] = {}
@@ -782,7 +775,7 @@ def _after(path: Path, t0: float, t_back: float) -> dict[str, Any]:
     """From a recording: after sim time t0, the first degraded event, the standstill (time
     and distance), and the first state moving again after both t_back (when what was lost
     came back) and the standstill, counted from t_back."""
-    states, events = _plant_record(path)
+    states, events = plant_record(path)
     s0 = max((s for s in states if s.header.stamp <= t0), key=lambda s: s.header.stamp)
     deg = next((e for e in events if e.kind == "degraded" and e.header.stamp >= t0), None)
     stop = next((s for s in states if s.header.stamp > t0 and _speed(s) < 0.05), None)
@@ -827,7 +820,7 @@ def run_with_cut(overrides: list[str], cut_s: float, tmp: Path, at_s: float
     """An episode with the plant in its own network namespace, its link to the router's
     taken down for `cut_s` once the episode reaches `at_s`: the pipeline (closed), the
     recorder's statistics, the outcome, the sim time of the cut."""
-    from deploy.launch import free_port
+    from deploy.launch.up import free_port
     port = free_port()
     with Namespace(f"{os.getpid() % 10000}{int(cut_s)}", 70 + int(cut_s)) as ns, \
             Pipeline(overrides, tmp, listen=[f"tcp/127.0.0.1:{port}",
@@ -876,8 +869,8 @@ def slow_link(tmp: Path, reference_time: float) -> dict[str, Any]:
 def bench_faults(cfg: Config, tmp: Path) -> dict[str, Any]:
     """Every figure of docs/reliability.md, measured: detection under `vamppi up`, the
     vehicle's stop and restart when a service is lost at speed, link cuts, a slow link."""
-    from deploy.bench import device_info
-    from deploy.runner import run_episode
+    from deploy.bench.device import device_info
+    from deploy.sim.runner import run_episode
     reference = run_episode(load_config(overrides=LOCKSTEP)).trajectory
     cases = []
     for service in SERVICES:

@@ -24,10 +24,10 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from common.bus import topic_key
 from common.messages import DecodeError, decode, peek
 from common.protocol import SeqTrack
-from deploy.recording import iter_messages, read_metadata, recorded_clocks
+from common.topics import topic_key
+from deploy.recording.record import iter_messages, read_metadata, recorded_clocks
 
 
 def stats_ms(times: list[float]) -> dict[str, float]:

@@ -31,7 +31,7 @@ import numpy as np
 from mcap.writer import CompressionType, Writer
 
 from common.messages import DecodeError, Depth, Event, Map, Message, Plan, State, Stats, decode
-from deploy.recording import iter_messages, package_versions, read_metadata
+from deploy.recording.record import iter_messages, package_versions, read_metadata
 
 # ----------------------------------------------------------------------------- schemas
 _NUM = {"type": "number"}

@@ -1,10 +1,10 @@
 """What each collision of an experiment was on: `vamppi collisions DIR`.
 
-A run record of an experiment (deploy/experiment.py) whose outcome is a
+A run record of an experiment (deploy/sim/experiment.py) whose outcome is a
 collision carries `collision`: the colliding pose and speed, and every scenario
 obstacle under the footprint with its `hidden` flag and the time the map first
 showed it, and when each of the scenario's hidden obstacles first appeared
-(deploy/runner.py, `collision_record`). The paper separates collisions with
+(deploy/sim/runner.py, `collision_record`). The paper separates collisions with
 obstacles in unobserved space from the rest; this table does it with the runs'
 own maps: how long the map had shown what was hit, and whether the vehicle had
 travelled farther since than it needed to stop (`room_to_stop`).
@@ -27,9 +27,9 @@ from typing import Any
 import numpy as np
 
 from common.config import Config
-from deploy.experiment import KEY_FIELDS, config_digest, run_layout, run_one
-from deploy.reveal import stopping_distance
-from deploy.runner import Cores
+from deploy.analysis.reveal import stopping_distance
+from deploy.sim.experiment import KEY_FIELDS, config_digest, run_layout, run_one
+from deploy.sim.runner import Cores
 
 UNATTRIBUTED = "unattributed"
 NOT_REPRODUCED = "not reproduced"
@@ -43,7 +43,7 @@ def _key(r: dict[str, Any]) -> tuple:
 def room_to_stop(cfg: Config, path: Any, c: dict[str, Any]) -> dict[str, Any] | None:
     """From the moment the map showed the last of the collision's obstacles to the collision:
     the distance travelled along the recorded 10 Hz path (t, X, Y, V[, psi]), the speed then, and
-    the distance needed to stop from that speed (`deploy.reveal.stopping_distance`: one
+    the distance needed to stop from that speed (`deploy.analysis.reveal.stopping_distance`: one
     control tick, the brake ramp, full braking). None where an obstacle was never shown or
     the collision is off the map only."""
     shown = [o["mapped_at_s"] for o in c["obstacles"]]

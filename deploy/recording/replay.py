@@ -29,10 +29,10 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from common.bus import INPUTS, PREFIX, TOPICS, topic_of
 from common.config import Config, config_toml, load_config
 from common.messages import DecodeError, Message, decode
-from deploy.recording import Recorded, iter_messages, recorded_config, recording_keys
+from common.topics import INPUTS, PREFIX, TOPICS, topic_of
+from deploy.recording.record import Recorded, iter_messages, recorded_config, recording_keys
 
 log = logging.getLogger(__name__)
 
@@ -172,7 +172,7 @@ def feed(path: str | Path, services: list[str], overrides: list[str], keep_going
     """Feed the recording into fresh `services` and compare their outputs (see the
     module docstring). Returns the report; `first_divergence` is None when every
     compared output was bit-identical."""
-    from deploy.launch import services_up
+    from deploy.launch.up import services_up
     bad = sorted(set(services) - set(FEEDABLE))
     if bad or not services:
         raise ValueError(f"can feed {', '.join(FEEDABLE)}; got {', '.join(services) or '-'}")

@@ -41,9 +41,9 @@ from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from common.bus import CACHED
 from common.messages import MESSAGE_TYPES, DecodeError, json_schema, peek
 from common.protocol import SeqTrack
+from common.topics import CACHED
 
 log = logging.getLogger(__name__)
 CLOCK_METADATA = "vamppi.clock"      # the publishers' clock offsets (Recorder)
@@ -59,7 +59,7 @@ PACKAGES = ("vamppi", "eclipse-zenoh", "jax", "jaxlib", "numpy", "mcap", "msgpac
 # ----------------------------------------------------------------------------- provenance
 def git_commit(path: Path | None = None) -> str:
     """HEAD of the checkout this code runs from ("+dirty" if it has changes), or "unknown"."""
-    where = path or Path(__file__).resolve().parent.parent
+    where = path or Path(__file__).resolve().parents[2]
     try:
         head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=where, capture_output=True,
                               text=True, timeout=5, check=True).stdout.strip()
@@ -97,7 +97,7 @@ def live_service_configs(session: Any, vehicle: str, timeout_s: float = 2.0
     """The effective configuration (JSON) of every service instance on the bus, by
     "<service>/<instance>" (their `config` queryables): what a standalone recorder
     stores, since its own configuration need not be the services'."""
-    from common.bus import admin_key
+    from common.topics import admin_key
     out = {}
     for reply in session.get(admin_key(vehicle, "*", "*", "config"), timeout=timeout_s):
         if reply.ok is not None:

@@ -146,7 +146,7 @@ def reveal_runs(cfg: Config, runs: list[dict], obstacles: str = "hidden",
                 min_returns: int = MIN_RETURNS) -> list[dict]:
     """One row per run and obstacle; `obstacles` is "hidden" or "all"."""
     from common.scenarios import build_scenario
-    from deploy.experiment import run_layout
+    from deploy.sim.experiment import run_layout
     cache: dict[tuple[str, int, int], Scenario] = {}
     rows = []
     for r in runs:

@@ -1,200 +1,33 @@
-"""`vamppi bench`: speed measured, never asserted (the machines are shared and noisy).
+"""`vamppi bench bus`, `pipeline`, `security` and `record`: messages through a real Zenoh
+router, the services as processes, and the recorder.
 
-planner   one full MPPI iteration (sampling, rollouts, the visibility-aware
-          variance update for `va`, costs, weights, update) per controller and
-          sample count, all cases in one process and interleaved repetition by
-          repetition, so their ratios hold even when the machine is busy.
-mapper    one depth frame fused, the occluded field of view inpainted, the map
-          message encoded; at the default camera resolution and at 320 x 240.
 bus       a map-sized message (two 400 x 400 float32 layers) from one client
           session to another through a real Zenoh router on loopback: one-way
           latency (one message in flight) and throughput (back to back), with
           our codec (encode + put ... decode), a raw put of the same bytes, and the
           floor under any checked array codec (one copy out, one checked read in).
-peer      our plain-MPPI iteration against pytorch_mppi's on one problem
-          (deploy/peer.py; the optional extra `.[peer]`).
 pipeline  the four services as processes around an embedded router in realtime
           mode (what `vamppi up --clock realtime` runs): the achieved command
           rate and the end-to-end latency from a depth frame's publication to
           the first plant step that applies a command computed from it,
           followed through the input references in the headers.
-
-Timing: compilation is timed apart (lower + compile) and excluded; every
-repetition is blocked on (`jax.block_until_ready`); medians and p95 over many
-repetitions. Memory: what XLA's compiled program needs on the device
-(arguments + outputs + temporaries, `Compiled.memory_analysis`), the same
-measure on a CPU and a GPU.
+security  the pipeline over plain TCP, over mutual TLS with access control, and
+          under a denied flood, side by side.
+record    synthetic traffic through the recorder at real time and as fast as possible.
 """
 
 from __future__ import annotations
 
 import json
-import platform
 import time
-from dataclasses import dataclass
 from importlib.metadata import version
 from typing import Any
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from common.config import Config
-from common.memory import keep_large_buffers
-from common.scenarios import scenario_of
-from deploy.timing import ChainLog, stats_ms
-from services.planner import mppi, native
-
-
-def device_info() -> dict[str, Any]:
-    """What ran the benchmark: CPU model or GPU name, JAX backend and version, and
-    whether the allocator keeps large freed buffers (common.memory; set here too)."""
-    dev = jax.devices()[0]
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            names = [ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")]
-        cpu = f"{names[0]} ({len(names)} logical cores)" if names else cpu
-    except OSError:
-        pass
-    return {"backend": jax.default_backend(), "device": dev.device_kind if dev.platform != "cpu"
-            else cpu, "cpu": cpu, "jax": jax.__version__, "malloc_tuned": keep_large_buffers()}
-
-
-@dataclass
-class Case:
-    controller: str
-    samples: int
-    fn: Any
-    args: tuple
-    compile_s: float
-    mem_mb: float
-    times: list[float]
-
-    def row(self) -> dict[str, Any]:
-        t = np.asarray(self.times) * 1e3
-        return {"controller": self.controller, "samples": self.samples,
-                "median_ms": round(float(np.median(t)), 3),
-                "p95_ms": round(float(np.percentile(t, 95)), 3),
-                "min_ms": round(float(t.min()), 3), "reps": len(t),
-                "compile_s": round(self.compile_s, 2), "peak_mem_mb": round(self.mem_mb, 1)}
-
-
-def planner_inputs(cfg: Config) -> tuple:
-    """A mid-episode planning problem on the offroad map: the vehicle on the road
-    at 6 m/s, the map known (variance 1e-4) within 25 m ahead, prior variance 3
-    elsewhere, the goal in the field."""
-    scn = scenario_of(cfg.replace(**{"episode.scenario": "offroad"}))
-    res = scn.resolution
-    h, w = scn.heightmap.shape
-    x0 = np.array([6.0, 0.0, 0.0, 30.0, 20.0, 0.0], np.float32)
-    xs = (np.arange(w) + 0.5) * res
-    ys = (np.arange(h) + 0.5) * res
-    dx, dy = np.meshgrid(xs - x0[3], ys - x0[4], indexing="xy")
-    seen = (dx > -5.0) & (np.hypot(dx, dy) < 25.0) & (np.abs(np.arctan2(dy, dx)) < 0.63)
-    variance = np.where(seen, 1e-4, cfg.mapper.prior_variance).astype(np.float32)
-    mean = np.where(seen, scn.heightmap, scn.terrain).astype(np.float32)
-    goal = np.array([scn.goal.x, scn.goal.y, scn.goal.yaw], np.float32)
-    return (x0, np.zeros(2, np.float32), goal, mean, variance,
-            np.asarray(scn.origin, np.float32), res)
-
-
-def planner_case(cfg: Config, controller: str, samples: int, inputs: tuple) -> Case:
-    run_cfg = cfg.replace(**{"planner.controller": controller, "planner.samples": samples,
-                             "planner.iterations": 1})
-    params = mppi.PlannerParams.from_config(run_cfg)
-    x0, u0, goal, mean, var, origin, res = inputs
-    state = mppi.initial_state(params, 0)
-    args = (state, *(jnp.asarray(a) for a in (x0, u0, goal, mean, var, origin)))
-    t0 = time.perf_counter()
-    compiled = mppi.solver(params).lower(*args, resolution=res).compile()
-    compile_s = time.perf_counter() - t0
-    mem = compiled.memory_analysis()
-    mem_mb = ((mem.argument_size_in_bytes + mem.output_size_in_bytes + mem.temp_size_in_bytes)
-              / 2 ** 20) if mem is not None else float("nan")
-    jax.block_until_ready(compiled(*args))          # first run (allocation) excluded too
-    return Case(controller, samples, compiled, args, compile_s, mem_mb, [])
-
-
-def bench_planner(cfg: Config, samples: list[int], controllers: list[str], reps: int
-                  ) -> dict[str, Any]:
-    inputs = planner_inputs(cfg)
-    cases = [planner_case(cfg, c, k, inputs) for k in samples for c in controllers]
-    for _ in range(reps):
-        for case in cases:                          # interleaved: ratios measured side by side
-            t0 = time.perf_counter()
-            jax.block_until_ready(case.fn(*case.args))
-            case.times.append(time.perf_counter() - t0)
-    p = cfg.planner
-    return {"benchmark": "planner", **device_info(),
-            "settings": {"horizon": p.horizon, "iterations": 1, "map_cells": list(inputs[3].shape),
-                         "rays": p.visibility_rays, "points": p.visibility_points,
-                         "surface_estimator": p.surface_estimator, "reps": reps,
-                         "va_kernel": "native" if native.use_native(p.va_kernel) else "jax",
-                         "rollout_kernel": "native" if native.use_native(p.rollout_kernel)
-                         else "jax"},
-            "cases": [c.row() for c in cases]}
-
-
-def planner_table(result: dict[str, Any]) -> str:
-    rows = result["cases"]
-    det = {r["samples"]: r["median_ms"] for r in rows if r["controller"] == "deterministic"}
-    lines = [f"planner, one iteration: {result['device']} ({result['backend']}, "
-             f"jax {result['jax']})", "",
-             "| controller | K | median ms | p95 ms | min ms | va / det | compile s | memory MB |",
-             "|---|---|---|---|---|---|---|---|"]
-    for r in rows:
-        ratio = (f"{r['median_ms'] / det[r['samples']]:.2f}"
-                 if r["controller"] == "va" and r["samples"] in det else "")
-        lines.append(f"| {r['controller']} | {r['samples']} | {r['median_ms']:.1f} "
-                     f"| {r['p95_ms']:.1f} | {r['min_ms']:.1f} | {ratio} | {r['compile_s']:.1f} "
-                     f"| {r['peak_mem_mb']:.0f} |")
-    return "\n".join(lines)
-
-
-def bench_mapper(cfg: Config, reps: int, sizes: tuple[tuple[int, int], ...] = ((0, 0), (320, 240))
-                 ) -> dict[str, Any]:
-    """Per camera size: fuse, inpaint, encode, and the whole, medians over `reps` frames
-    (the same frame each time, from the offroad start, fused into a fresh map)."""
-    from common.messages import Header, Map, encode
-    from services.mapper import core as mapper
-    from services.sensor import core as sensor
-    scn = scenario_of(cfg.replace(**{"episode.scenario": "offroad"}))
-    params = mapper.MapperParams.from_config(cfg, scn.origin)
-    x, y, yaw = scn.start.x, scn.start.y, scn.start.yaw
-    z = float(scn.heightmap[int(y / scn.resolution), int(x / scn.resolution)])
-    cases = []
-    for w, h in sizes:
-        scfg = cfg.sensor if not w else cfg.replace(**{"sensor.width_px": w,
-                                                       "sensor.height_px": h}).sensor
-        cam = sensor.CameraParams.from_config(scfg)
-        depth, pos, rot = sensor.render(cam, scn.heightmap, scn.origin, scn.resolution, x, y, z,
-                                        yaw)
-        pose = np.array([x, y, z, yaw])
-        fresh = mapper.initial_map(params, x, y, z)
-        t0 = time.perf_counter()
-        mapper.update(params, fresh, depth, cam.intrinsics, pos, rot, pose)   # compile
-        compile_s = time.perf_counter() - t0
-        stages: dict[str, list[float]] = {"fuse": [], "inpaint": [], "encode": [], "total": []}
-        for i in range(reps):
-            t0 = time.perf_counter()
-            fused = mapper.fuse_depth(params, fresh, depth, cam.intrinsics, pos, rot)
-            jax.block_until_ready((fused.mean, fused.variance))
-            t1 = time.perf_counter()
-            done = mapper.inpaint_occluded(params, fused, x, y, z, yaw)
-            t2 = time.perf_counter()
-            payload = encode(Map(Header(i, 0.0, time.time(), "bench/0"), np.asarray(done.mean),
-                                 np.asarray(done.variance), np.asarray(params.origin, float),
-                                 params.resolution))
-            t3 = time.perf_counter()
-            for k, dt in (("fuse", t1 - t0), ("inpaint", t2 - t1), ("encode", t3 - t2),
-                          ("total", t3 - t0)):
-                stages[k].append(dt)
-        cases.append({"width": cam.width, "height": cam.height, "compile_s": round(compile_s, 2),
-                      "map_bytes": len(payload),
-                      **{k: stats_ms(v) for k, v in stages.items()}})
-    return {"benchmark": "mapper", **device_info(),
-            "settings": {"map_cells": [params.size, params.size], "reps": reps}, "cases": cases}
+from deploy.bench.device import device_info, heading
+from deploy.recording.timing import ChainLog, stats_ms
 
 
 def bench_bus(cfg: Config, reps: int, burst: int = 200) -> dict[str, Any]:
@@ -211,7 +44,7 @@ def bench_bus(cfg: Config, reps: int, burst: int = 200) -> dict[str, Any]:
     from common.bus import open_session
     from common.config import BusConfig
     from common.messages import ALIGN, Header, Map, check_values, decode, encode
-    from deploy.launch import free_port
+    from deploy.launch.up import free_port
     n = cfg.mapper.size_cells
     rng = np.random.default_rng(0)
     mean = rng.normal(size=(n, n)).astype(np.float32)
@@ -319,12 +152,13 @@ def bench_pipeline(cfg: Config, overrides: list[str], samples: list[int],
     `record`: an MCAP file per case (`-<controller>-<K>` added when several), for
     `vamppi timing` to analyse the very same messages. `secure`: mutual TLS and access
     control (`services_up`'s default), else plain TCP; `flood`: a client with a viewer's
-    certificate puts copies of the commands on `cmd` as fast as it can (deploy.faults)."""
+    certificate puts copies of the commands on `cmd` as fast as it can (deploy.bench.faults)."""
     from pathlib import Path
 
-    from common.bus import Health, Inbox, topic_key
+    from common.bus import Health, Inbox
     from common.messages import Event
-    from deploy.launch import recording_hook, services_up
+    from common.topics import topic_key
+    from deploy.launch.up import recording_hook, services_up
     from services.plant.protocol import OUTCOMES
     cases = []
     for controller in controllers:
@@ -354,7 +188,7 @@ def bench_pipeline(cfg: Config, overrides: list[str], samples: list[int],
                 if flood:
                     from common.config import BusConfig
                     from common.security import default_certs
-                    from deploy.faults import Flood
+                    from deploy.bench.faults import Flood
                     flooder = Flood(BusConfig("client", (endpoint,), (), False,
                                               cfg.bus.certs or str(default_certs()),
                                               "viewer"), cfg.episode.vehicle)
@@ -394,7 +228,7 @@ def bench_security(cfg: Config, overrides: list[str], duration_s: float, reps: i
     import tempfile
     from pathlib import Path
 
-    from deploy.timing import analyse
+    from deploy.recording.timing import analyse
     kinds = (("tcp", False, False), ("tls+acl", True, False), ("tls+acl, flood", True, True))
     runs: dict[str, list[dict[str, Any]]] = {name: [] for name, _, _ in kinds}
     with tempfile.TemporaryDirectory(prefix="vamppi-security-") as tmp:
@@ -439,9 +273,9 @@ def bench_security(cfg: Config, overrides: list[str], duration_s: float, reps: i
 def synthetic_session(cfg: Config, path: str, seconds: float, map_hz: float) -> dict[str, Any]:
     """A recording shaped like the pipeline's traffic: states at the plant rate, depth
     frames, maps (two 400 x 400 float32 layers) and commands at `map_hz`."""
-    from common.bus import topic_key
     from common.messages import Cmd, Depth, Header, Map, State, encode
-    from deploy.recording import RecordingWriter, recording_metadata
+    from common.topics import topic_key
+    from deploy.recording.record import RecordingWriter, recording_metadata
     v, n = cfg.episode.vehicle, cfg.mapper.size_cells
     rng = np.random.default_rng(0)
     mean = rng.normal(size=(n, n)).astype(np.float32)
@@ -482,8 +316,8 @@ def bench_record(cfg: Config, duration_s: float, rates: list[float],
     from pathlib import Path
 
     from common.bus import ZenohTransport, open_session
-    from deploy.launch import free_port, router_config
-    from deploy.recording import Recorder, iter_messages, recording_metadata
+    from deploy.launch.up import free_port, router_config
+    from deploy.recording.record import Recorder, iter_messages, recording_metadata
     cases = []
     with tempfile.TemporaryDirectory() as tmp:
         src = str(Path(tmp) / "synthetic.mcap")
@@ -496,7 +330,7 @@ def bench_record(cfg: Config, duration_s: float, rates: list[float],
                 rec = Recorder(ZenohTransport(session), keys, out,
                                recording_metadata(cfg.to_dict(), keys))
                 t0 = time.monotonic()
-                r = subprocess.run([sys.executable, "-m", "deploy.cli", "replay", src,
+                r = subprocess.run([sys.executable, "-m", "deploy", "replay", src,
                                     "--rate", str(rate), "--connect", f"tcp/127.0.0.1:{port}",
                                     "--set", "bus.mode=\"client\""],
                                    capture_output=True, text=True, timeout=duration_s * 10 + 120)
@@ -518,79 +352,9 @@ def bench_record(cfg: Config, duration_s: float, rates: list[float],
             "cases": cases}
 
 
-def table(result: dict[str, Any]) -> str:
-    """A markdown table of any benchmark's result."""
-    kind = result["benchmark"]
-    if kind == "planner":
-        return planner_table(result)
-    if kind == "faults":
-        from deploy.faults import faults_table
-        return faults_table(result)
-    if kind == "swaps":
-        from deploy.swap import swaps_table
-        return swaps_table(result)
-    head = f"{kind}: {result['device']} ({result['backend']}, jax {result['jax']})"
-    if kind == "record":
-        st = result["settings"]
-        lines = [f"{head}; {st['seconds']} s of traffic: states {st['state_hz']} Hz, depth, "
-                 f"maps and commands {st['map_hz']} Hz ({st['messages']} messages)", "",
-                 "| time scale | published | recorded | seq gaps | max backlog | wall s "
-                 "| MB/s | file MB (of payload MB) |", "|---|---|---|---|---|---|---|---|"]
-        for c in result["cases"]:
-            lines.append(f"| {c['rate'] or 'as fast as possible'} | {c['published']} | "
-                         f"{c['recorded']} | {c['seq_missing']} | {c['max_backlog']} | "
-                         f"{c['wall_s']} | {c['mb_per_s']} | {c['file_mb']} "
-                         f"({c['payload_mb']}) |")
-        return "\n".join(lines)
-    if kind == "security":
-        st = result["settings"]
-        lines = [f"{head}; realtime, {st['controller']} K = {st['samples']}, "
-                 f"{st['scenario']}, {st['reps']} interleaved runs each (medians)", "",
-                 "| bus | map p50 ms | map p99 ms | commands/s | end-to-end p50 ms "
-                 "| stale states | flood puts | map p50 / tcp | map p99 / tcp |",
-                 "|---|---|---|---|---|---|---|---|---|"]
-        for c in result["cases"]:
-            lines.append(f"| {c['case']} | {c['map_p50_ms']} | {c['map_p99_ms']} "
-                         f"| {c['command_rate_hz']} | {c['end_to_end_p50_ms']} "
-                         f"| {c['stale_states']:g} | {c['flood_sent']:g} "
-                         f"| {c.get('map_p50_over_tcp', 1.0)} | {c.get('map_p99_over_tcp', 1.0)} |")
-        return "\n".join(lines)
-    if kind == "peer":
-        ours = {c["samples"]: c["median_ms"] for c in result["cases"]
-                if c["implementation"] == "vamppi"}
-        lines = [f"{head}; torch {result['torch']} on {result['torch_device']} "
-                 f"({result['torch_threads']} threads), pytorch_mppi {result['pytorch_mppi']}",
-                 "", "| implementation | K | median ms | p95 ms | time / ours |",
-                 "|---|---|---|---|---|"]
-        for c in result["cases"]:
-            lines.append(f"| {c['implementation']} | {c['samples']} | {c['median_ms']:.1f} "
-                         f"| {c['p95_ms']:.1f} | {c['median_ms'] / ours[c['samples']]:.2f} |")
-        return "\n".join(lines)
-    if kind == "pipeline":
-        lines = [head, "", "| controller | K | commands/s | interval p95 ms | end-to-end p50 ms "
-                 "| p95 ms | depth->map p50 | map->cmd p50 | cmd->applied p50 | stale steps "
-                 "| outcome |", "|---|---|---|---|---|---|---|---|---|---|---|"]
-        for c in result["cases"]:
-            e = c.get("end_to_end", {})
-            stage = [c.get(s, {}).get("median_ms", float("nan"))
-                     for s in ("depth_to_map", "map_to_cmd", "cmd_to_applied")]
-            lines.append(f"| {c['controller']} | {c['samples']} "
-                         f"| {c.get('command_rate_hz', 0):.1f} "
-                         f"| {c.get('command_interval', {}).get('p95_ms', float('nan')):.0f} "
-                         f"| {e.get('median_ms', float('nan')):.0f} "
-                         f"| {e.get('p95_ms', float('nan')):.0f} "
-                         + "".join(f"| {x:.0f} " for x in stage)
-                         + f"| {c['stale_states']} / {c['states']} | {c['outcome']} |")
-        return "\n".join(lines)
-    if kind == "mapper":
-        lines = [head, "", "| camera | fuse ms | inpaint ms | encode ms | total median ms "
-                 "| total p95 ms | compile s |", "|---|---|---|---|---|---|---|"]
-        for c in result["cases"]:
-            lines.append(f"| {c['width']} x {c['height']} | {c['fuse']['median_ms']:.1f} "
-                         f"| {c['inpaint']['median_ms']:.1f} | {c['encode']['median_ms']:.1f} "
-                         f"| {c['total']['median_ms']:.1f} | {c['total']['p95_ms']:.1f} "
-                         f"| {c['compile_s']:.1f} |")
-        return "\n".join(lines)
+def bus_table(result: dict[str, Any]) -> str:
+    """`vamppi bench bus`'s result as a markdown table."""
+    head = heading(result)
     lines = [head, "", "| payload | bytes | latency p50 ms | p99 ms | p50 over raw | msgs/s "
              "| MB/s |", "|---|---|---|---|---|---|---|"]
     for c in result["cases"]:
@@ -604,40 +368,54 @@ def table(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def main(cfg: Config, what: str, samples: list[int], controllers: list[str], reps: int,
-         as_json: bool, overrides: list[str] = (), duration_s: float = 30.0,
-         config_path: str | None = None, record: str | None = None) -> int:
-    if what == "pipeline":
-        result = bench_pipeline(cfg, list(overrides), samples, controllers, duration_s,
-                                config_path, record)
-    elif what == "security":
-        result = bench_security(cfg, list(overrides), duration_s, reps, config_path)
-    elif what == "record":
-        result = bench_record(cfg, duration_s, [1.0, 0.0])
-    elif what == "peer":
-        from deploy.peer import bench_peer
-        result = bench_peer(cfg, samples, reps)
-    elif what == "planner":
-        result = bench_planner(cfg, samples, controllers, reps)
-    elif what == "mapper":
-        result = bench_mapper(cfg, reps)
-    elif what == "bus":
-        result = bench_bus(cfg, reps)
-    elif what == "faults":
-        import tempfile
-        from pathlib import Path
+def pipeline_table(result: dict[str, Any]) -> str:
+    """`vamppi bench pipeline`'s result as a markdown table."""
+    head = heading(result)
+    lines = [head, "", "| controller | K | commands/s | interval p95 ms | end-to-end p50 ms "
+             "| p95 ms | depth->map p50 | map->cmd p50 | cmd->applied p50 | stale steps "
+             "| outcome |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for c in result["cases"]:
+        e = c.get("end_to_end", {})
+        stage = [c.get(s, {}).get("median_ms", float("nan"))
+                 for s in ("depth_to_map", "map_to_cmd", "cmd_to_applied")]
+        lines.append(f"| {c['controller']} | {c['samples']} "
+                     f"| {c.get('command_rate_hz', 0):.1f} "
+                     f"| {c.get('command_interval', {}).get('p95_ms', float('nan')):.0f} "
+                     f"| {e.get('median_ms', float('nan')):.0f} "
+                     f"| {e.get('p95_ms', float('nan')):.0f} "
+                     + "".join(f"| {x:.0f} " for x in stage)
+                     + f"| {c['stale_states']} / {c['states']} | {c['outcome']} |")
+    return "\n".join(lines)
 
-        from deploy.faults import bench_faults
-        with tempfile.TemporaryDirectory(prefix="vamppi-faults-") as tmp:
-            result = bench_faults(cfg, Path(tmp))
-    elif what == "swaps":
-        import tempfile
-        from pathlib import Path
 
-        from deploy.swap import bench_swaps
-        with tempfile.TemporaryDirectory(prefix="vamppi-swaps-") as tmp:
-            result = bench_swaps(cfg, Path(tmp))
-    else:
-        raise ValueError(f"unknown benchmark {what!r}")
-    print(json.dumps(result) if as_json else table(result), flush=True)
-    return 0
+def security_table(result: dict[str, Any]) -> str:
+    """`vamppi bench security`'s result as a markdown table."""
+    head = heading(result)
+    st = result["settings"]
+    lines = [f"{head}; realtime, {st['controller']} K = {st['samples']}, "
+             f"{st['scenario']}, {st['reps']} interleaved runs each (medians)", "",
+             "| bus | map p50 ms | map p99 ms | commands/s | end-to-end p50 ms "
+             "| stale states | flood puts | map p50 / tcp | map p99 / tcp |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for c in result["cases"]:
+        lines.append(f"| {c['case']} | {c['map_p50_ms']} | {c['map_p99_ms']} "
+                     f"| {c['command_rate_hz']} | {c['end_to_end_p50_ms']} "
+                     f"| {c['stale_states']:g} | {c['flood_sent']:g} "
+                     f"| {c.get('map_p50_over_tcp', 1.0)} | {c.get('map_p99_over_tcp', 1.0)} |")
+    return "\n".join(lines)
+
+
+def record_table(result: dict[str, Any]) -> str:
+    """`vamppi bench record`'s result as a markdown table."""
+    head = heading(result)
+    st = result["settings"]
+    lines = [f"{head}; {st['seconds']} s of traffic: states {st['state_hz']} Hz, depth, "
+             f"maps and commands {st['map_hz']} Hz ({st['messages']} messages)", "",
+             "| time scale | published | recorded | seq gaps | max backlog | wall s "
+             "| MB/s | file MB (of payload MB) |", "|---|---|---|---|---|---|---|---|"]
+    for c in result["cases"]:
+        lines.append(f"| {c['rate'] or 'as fast as possible'} | {c['published']} | "
+                     f"{c['recorded']} | {c['seq_missing']} | {c['max_backlog']} | "
+                     f"{c['wall_s']} | {c['mb_per_s']} | {c['file_mb']} "
+                     f"({c['payload_mb']}) |")
+    return "\n".join(lines)
