@@ -390,6 +390,22 @@ def preset_overrides(name: str) -> list[str]:
     return out
 
 
+def by_name(cls: type, *sections: Any, **derived: Any) -> Any:
+    """An instance of the frozen dataclass `cls` (a core's parameters) whose fields are
+    config keys of `sections` under the same names, the first section that has one
+    winning; `derived` gives the fields computed from other keys, or a key's value made
+    effective (a count clamped to what the others leave); each must be a field."""
+    names = [f.name for f in dataclasses.fields(cls)]
+    unknown = sorted(set(derived) - set(names))
+    if unknown:
+        raise TypeError(f"{cls.__name__} has no field {', '.join(unknown)}")
+    keys = {f.name: s for s in reversed(sections) for f in dataclasses.fields(s)}
+    missing = [n for n in names if n not in derived and n not in keys]
+    if missing:
+        raise TypeError(f"{cls.__name__}: no config key and no value for {', '.join(missing)}")
+    return cls(**{n: derived[n] if n in derived else getattr(keys[n], n) for n in names})
+
+
 def as_overrides(cfg: Config, skip: tuple[str, ...] = ()) -> list[str]:
     """The `section.key=value` overrides that turn the defaults into `cfg` (sections in
     `skip` left out): a configuration handed to another process on its command line."""

@@ -4,7 +4,7 @@ glibc's malloc returns freed buffers above its (dynamic) mmap threshold to the O
 trims the heap's top past its trim threshold, so every megabyte-sized buffer made anew
 page-faults in again: a 1.3 MB map message took 6 ms to encode that way on this VM and
 0.15 ms once its buffers stay (docs/bus.md); VA-MPPI's iteration at K = 800 spent about
-7 ms of its 63 in page faults on XLA's buffers (docs/benchmarks.md, session 15). Every
+7 ms of its 63 in page faults on XLA's buffers. Every
 `vamppi` command and every bus session raises both thresholds once per process, at the
 price of keeping up to a few hundred MB of freed memory mapped.
 """

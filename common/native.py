@@ -2,8 +2,10 @@
 
 A `Library` is compiled from its C++ sources with the system's compiler (`$CXX`, else
 g++) against the XLA FFI headers that jaxlib ships, once per source, jaxlib version and
-CPU model, next to its sources (`make` builds every library at install: `python -m
-services.build_native`; the first use builds one that is missing). Nothing is downloaded.
+CPU model, next to its sources, by `make` (`python -m services.build_native`, at install and
+before every `make test` and `make demo`: a no-op when nothing changed). Loading never
+builds: a library missing for the current sources is unavailable (its service uses the JAX
+form under `auto`, refuses under `native`). Nothing is downloaded.
 """
 
 from __future__ import annotations
@@ -87,13 +89,17 @@ class Library:
         return out
 
     def load(self) -> ctypes.CDLL:
-        """The built library, loaded once per process."""
+        """The built library, loaded once per process; NativeUnavailable if it is not built."""
         return _load(self)
 
 
 @cache
 def _load(lib: Library) -> ctypes.CDLL:
-    return ctypes.cdll.LoadLibrary(str(lib.build()))
+    path = lib.path()
+    if not path.exists():        # built at install, never on first use (nor while tracing)
+        raise NativeUnavailable(f"{path.name} is not built for these sources: run `make` "
+                                "(or python -m services.build_native)")
+    return ctypes.cdll.LoadLibrary(str(path))
 
 
 @cache

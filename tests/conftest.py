@@ -56,14 +56,15 @@ def va_planning_problem():
 
     from common.config import load_config
     from deploy.bench.kernels import planner_inputs
-    from services.planner import mppi
+    from services.planner import kernels, mppi
     from services.planner.costs import MapView
+    from services.planner.params import PlannerParams
     cfg = load_config(overrides=['planner.controller="va"', "planner.samples=64"])
     x0, u0, _goal, mean, var, origin, res = planner_inputs(cfg)
-    params = mppi.PlannerParams.from_config(cfg)
+    params = PlannerParams.from_config(cfg)
     m = MapView(jnp.asarray(mean), jnp.asarray(var), jnp.asarray(origin), res)
     noise = mppi.sample_noise(params, jax.random.PRNGKey(3))
-    states = jax.jit(jax.vmap(lambda e: mppi.rollout(params, jnp.asarray(x0), jnp.asarray(u0),
+    states = jax.jit(jax.vmap(lambda e: kernels.rollout(params, jnp.asarray(x0), jnp.asarray(u0),
                                                      e)[0]))(noise)
     return params, m, states
 

@@ -44,8 +44,9 @@ log.addHandler(Hits())
 import jax.numpy as jnp
 from common.config import load_config
 from services.planner import mppi
+from services.planner.params import PlannerParams
 cfg = load_config(None, ["planner.samples=16", "planner.controller=deterministic"])
-p = mppi.PlannerParams.from_config(cfg)
+p = PlannerParams.from_config(cfg)
 args = (mppi.initial_state(p, 0), jnp.zeros(6), jnp.zeros(2), jnp.ones(3),
         jnp.zeros((40, 40)), jnp.ones((40, 40)), jnp.zeros(2))
 mppi.solver(p).lower(*args, resolution=0.2).compile()

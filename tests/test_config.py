@@ -69,3 +69,28 @@ def test_parameters_doc_is_generated_from_the_defaults():
     for section, values in default_dict().items():
         for key in values:
             assert f"| `{key}` |" in doc.read_text(), f"{section}.{key}"
+
+
+def test_params_are_built_by_name_and_a_misnamed_field_is_an_error():
+    from dataclasses import dataclass
+
+    from common.config import by_name
+
+    @dataclass(frozen=True)
+    class P:
+        samples: int           # planner.samples
+        hfov_deg: float        # sensor.hfov_deg
+        twice: int             # derived
+
+    cfg = load_config(overrides=["planner.samples=7", "sensor.hfov_deg=60.0"])
+    assert by_name(P, cfg.planner, cfg.sensor, twice=14) == P(7, 60.0, 14)
+    with pytest.raises(TypeError, match="no config key and no value for twice"):
+        by_name(P, cfg.planner, cfg.sensor)
+    with pytest.raises(TypeError, match="has no field thrice"):
+        by_name(P, cfg.planner, cfg.sensor, twice=14, thrice=21)
+
+    @dataclass(frozen=True)
+    class Q:
+        sample: int            # a typo for planner.samples: no such key
+    with pytest.raises(TypeError, match="no config key and no value for sample"):
+        by_name(Q, cfg.planner)

@@ -13,11 +13,13 @@ from common.config import load_config
 from deploy.analysis.summary import summarize
 from deploy.sim.experiment import (
     KEY_FIELDS,
+    RECORD_FORMAT,
     ExperimentError,
     config_digest,
     cpu_shares,
     experiment,
     read_runs,
+    record_format,
     saved_config,
 )
 from services.plant.core import OUTCOMES
@@ -56,6 +58,7 @@ def test_small_experiment_records_are_complete_and_resumable(tmp_path):
         assert len(x["solve_ms"]) >= 10 and x["max_speed_mps"] >= 0
         assert ("collision" in x) == (x["outcome"] == "collision")
         assert x["layout"] == 1                                     # the alleyway's only one
+        assert x["format"] == RECORD_FORMAT == record_format(x)
     summary = json.loads((out / "summary.json").read_text())
     assert summary == summarize(runs)
     assert {s["controller"] for s in summary} == {"va", "deterministic", "prescient"}
@@ -214,3 +217,11 @@ def test_summaries_by_kind_and_overall_pair_each_run_with_the_prescient_one():
     text, per = summary_markdown(runs)
     assert "By kind:" in text and "| trees | va | 400 | 2 | 50 % | 50 % |" in text
     assert set(per) == {"scenario", "kind", "all"}
+
+
+def test_a_record_without_its_format_is_told_by_its_content():
+    row4, row5 = [0.0, 1.0, 2.0, 3.0], [0.0, 1.0, 2.0, 3.0, 0.5]
+    assert record_format({"path": [row4]}) == 1
+    assert record_format({"path": [row5]}) == 2
+    assert record_format({"path": [row5], "layout": 2}) == 3
+    assert record_format({"path": [row5], "layout": 2, "format": 7}) == 7

@@ -35,13 +35,14 @@ def reference_fuse(state, depth, intr, pos, rot):
                 continue
             pc = np.array([(u - cx) / fx * d, (v - cy) / fy * d, d])
             pw = rot @ pc + pos
-            col, row = int(math.floor(pw[0] / P.resolution)), int(math.floor(pw[1] / P.resolution))
-            if not (0 <= col < P.size and 0 <= row < P.size):
+            res = P.resolution_m
+            col, row = int(math.floor(pw[0] / res)), int(math.floor(pw[1] / res))
+            if not (0 <= col < P.size_cells and 0 <= row < P.size_cells):
                 continue
-            frac = pw[:2] / P.resolution
+            frac = pw[:2] / P.resolution_m
             if (np.abs(frac - np.rint(frac)) < 1e-4).any():
                 ambiguous[max(row - 1, 0):row + 2, max(col - 1, 0):col + 2] = True
-            s2 = (P.sigma0 + P.k_per_m * float(np.linalg.norm(pc)) ** 2) ** 2
+            s2 = (P.noise_sigma0_m + P.noise_k_per_m * float(np.linalg.norm(pc)) ** 2) ** 2
             k = var[row, col] / (var[row, col] + s2)
             mean[row, col] += k * (pw[2] - mean[row, col])
             var[row, col] *= (1 - k)

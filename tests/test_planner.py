@@ -2,6 +2,7 @@
 
 import dataclasses
 import math
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -9,30 +10,47 @@ import numpy as np
 import pytest
 
 from common.config import load_config
-from services.planner import mppi, native
+from services.planner import kernels, mppi, native
 from services.planner.costs import MapView, absorbing_crash, exceed_prob, rollout_cost
+from services.planner.params import PlannerParams
 from services.plant.dynamics import S, clamp_control, integrate
 
 CFG = load_config(overrides=["planner.samples=256"])
-PP = mppi.PlannerParams.from_config(CFG)
+PP = PlannerParams.from_config(CFG)
 
 
 def test_rollout_matches_the_float64_model(rng):
     x0 = np.array([rng.uniform(0, 10), 0, 0, 40.0, 40.0, rng.uniform(-3, 3)])
     controls = np.stack([rng.uniform(-0.6, 0.6, PP.horizon),
                          rng.uniform(-6000, 5000, PP.horizon)], -1).astype(np.float32)
-    states, applied, _ = mppi.rollout(PP, jnp.asarray(x0, jnp.float32), jnp.zeros(2), controls)
+    states, applied, _ = kernels.rollout(PP, jnp.asarray(x0, jnp.float32), jnp.zeros(2), controls)
     x, u_prev = x0.copy(), np.zeros(2)
     for i in range(PP.horizon):
-        u = clamp_control(controls[i].astype(np.float64), u_prev, PP.limits, PP.dt)
+        u = clamp_control(controls[i].astype(np.float64), u_prev, PP.limits, PP.dt_s)
         np.testing.assert_allclose(np.asarray(applied[i]), u, rtol=1e-5, atol=1e-3)
-        x = integrate(PP.vehicle, x, u, PP.dt, PP.substeps)
+        x = integrate(PP.vehicle, x, u, PP.dt_s, PP.substeps)
         u_prev = u
         np.testing.assert_allclose(np.asarray(states[i + 1, S.X:S.Y + 1]), x[S.X:S.Y + 1],
                                    atol=5e-3)
 
 
 @pytest.mark.skipif(not native.available(), reason="the native kernels do not build here")
+def test_the_native_model_vector_is_named_entry_by_entry_as_rollout_cc_reads_it(tmp_path):
+    """native.MODEL against rollout.cc's enum Model, name for name and in order; each
+    entry a field of the vehicle or of its control limits, every value where MODEL says."""
+    assert native.model_enum() == [name for name, _ in native.MODEL]
+    vec = native.model_vector(PP.vehicle, PP.limits)
+    assert vec.shape == (len(native.MODEL),)
+    for (name, what), x in zip(native.MODEL, vec, strict=True):
+        field, _, i = what.partition(".")
+        want = getattr(PP.limits, field)[int(i)] if i else getattr(PP.vehicle, field)
+        assert x == np.float32(want), name
+    swapped = tmp_path / "rollout.cc"           # two entries swapped: the check sees it
+    source = Path(native.__file__).with_name("rollout.cc").read_text()
+    swapped.write_text(source.replace("kLf, kLr,", "kLr, kLf,"))
+    assert native.model_enum(swapped) != [name for name, _ in native.MODEL]
+
+
 @pytest.mark.parametrize("k", [1, 37])
 def test_native_rollouts_match_the_jax_form_and_the_float64_model(rng, k):
     """rollout.cc against `rollout` vmapped (the same float32 arithmetic, so within
@@ -45,11 +63,11 @@ def test_native_rollouts_match_the_jax_form_and_the_float64_model(rng, k):
     controls = np.stack([rng.uniform(-0.8, 0.8, (k, PP.horizon)),
                          rng.uniform(-8000, 7000, (k, PP.horizon))], -1).astype(np.float32)
     model = native.model_vector(PP.vehicle, PP.limits)
-    got = [native.rollouts(model, x0, u0, controls, dt=PP.dt, substeps=PP.substeps,
+    got = [native.rollouts(model, x0, u0, controls, dt=PP.dt_s, substeps=PP.substeps,
                            n_threads=n) for n in (1, 3)]
     for a, b in zip(*got, strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    ref = jax.vmap(mppi.rollout, in_axes=(None, None, None, 0))(
+    ref = jax.vmap(kernels.rollout, in_axes=(None, None, None, 0))(
         PP, jnp.asarray(x0), jnp.asarray(u0), jnp.asarray(controls))
     (states, applied, xdots), (s_ref, a_ref, x_ref) = got[0], ref
     np.testing.assert_allclose(np.asarray(applied), np.asarray(a_ref), rtol=1e-6, atol=1e-6)
@@ -57,8 +75,8 @@ def test_native_rollouts_match_the_jax_form_and_the_float64_model(rng, k):
     np.testing.assert_allclose(np.asarray(xdots), np.asarray(x_ref), rtol=1e-3, atol=1e-3)
     x, u_prev = x0.astype(np.float64), u0.astype(np.float64)
     for i in range(PP.horizon):                       # the last sample, in float64
-        u = clamp_control(controls[-1, i].astype(np.float64), u_prev, PP.limits, PP.dt)
-        x = integrate(PP.vehicle, x, u, PP.dt, PP.substeps)
+        u = clamp_control(controls[-1, i].astype(np.float64), u_prev, PP.limits, PP.dt_s)
+        x = integrate(PP.vehicle, x, u, PP.dt_s, PP.substeps)
         u_prev = u
         np.testing.assert_allclose(np.asarray(states[-1, i + 1, S.X:S.Y + 1]), x[S.X:S.Y + 1],
                                    atol=5e-3)
@@ -93,7 +111,7 @@ ZERO_VAR = jnp.zeros((T_PRICED, 5 * P_POINTS), jnp.float32)
 def test_surface_cost_sees_a_wall_and_nothing_on_flat_ground():
     x0 = jnp.asarray([8.0, 0, 0, 20.0, 40.0, 0.0], jnp.float32)
     go = jnp.tile(jnp.asarray([0.0, 1000.0], jnp.float32), (PP.horizon, 1))
-    states, _, xd = mppi.rollout(PP, x0, jnp.zeros(2), go)
+    states, _, xd = kernels.rollout(PP, x0, jnp.zeros(2), go)
     goal = jnp.asarray([60.0, 40.0, 0.0])
     flat = rollout_cost(PP.cost, states, xd, goal, flat_map(), ZERO_VAR)
     assert float(flat[2]) == 0.0
@@ -112,14 +130,14 @@ def test_a_middle_array_and_a_margin_see_a_corner_at_the_vehicles_side():
     assert fp.shape == (15, 2) and sorted(set(fp[:, 0])) == [-2.0, 0.0, 2.0]
     np.testing.assert_array_equal(footprint_points(4.0, 2.0, 5), fp[[*range(5), *range(10, 15)]])
     x0 = jnp.asarray([0.0, 0, 0, 40.1, 40.1, 0.0], jnp.float32)        # standing still
-    states, _, xd = mppi.rollout(PP, x0, jnp.zeros(2), jnp.zeros((PP.horizon, 2)))
+    states, _, xd = kernels.rollout(PP, x0, jnp.zeros(2), jnp.zeros((PP.horizon, 2)))
     goal = jnp.asarray([60.0, 40.0, 0.0])
     m = flat_map()
 
     def surface(post_rows, arrays, margin):
         cfg = CFG.replace(**{"planner.footprint_arrays": arrays,
                              "planner.footprint_margin_m": margin})
-        cp = mppi.PlannerParams.from_config(cfg).cost
+        cp = PlannerParams.from_config(cfg).cost
         post = MapView(m.mean.at[post_rows, 199:202].set(2.0), m.variance, m.origin, 0.2)
         zero = jnp.zeros((T_PRICED, 5 * arrays * 5), jnp.float32)
         return float(rollout_cost(cp, states, xd, goal, post, zero)[2])
@@ -135,7 +153,7 @@ def test_a_middle_array_and_a_margin_see_a_corner_at_the_vehicles_side():
 def test_absorbing_crash_against_a_loop(rng):
     """From the first step with >= 0.5 expected indicators on a well-known cell on,
     every step costs 5 P; fog (variance above crash_variance) never crashes; 0 = off."""
-    cp = mppi.PlannerParams.from_config(CFG.replace(**{"planner.crash_variance": 0.01})).cost
+    cp = PlannerParams.from_config(CFG.replace(**{"planner.crash_variance": 0.01})).cost
     n1, p = PP.horizon + 1, P_POINTS
     for _ in range(20):
         expected = (rng.uniform(0, 0.6, (n1, p)) * (rng.uniform(size=(n1, p)) < 0.1)
@@ -157,7 +175,7 @@ def test_absorbing_crash_against_a_loop(rng):
     # a wall the rollout drives into: the crash cost charges the steps after the hit too
     x0 = jnp.asarray([8.0, 0, 0, 20.0, 40.0, 0.0], jnp.float32)
     go = jnp.tile(jnp.asarray([0.0, 1000.0], jnp.float32), (PP.horizon, 1))
-    states, _, xd = mppi.rollout(PP, x0, jnp.zeros(2), go)
+    states, _, xd = kernels.rollout(PP, x0, jnp.zeros(2), go)
     m = flat_map()
     wall = MapView(m.mean.at[150:250, 200:205].set(2.0), m.variance, m.origin, m.resolution)
     goal = jnp.asarray([60.0, 40.0, 0.0])
@@ -173,7 +191,7 @@ def test_surface_cost_per_metre_against_a_loop(rng):
     fog pays nothing for it, where the paper's sum charges every step; a rollout that
     stops before a wall pays less than one that drives on through it."""
     ref_m = 0.5
-    cp = mppi.PlannerParams.from_config(
+    cp = PlannerParams.from_config(
         CFG.replace(**{"planner.surface_distance_m": ref_m})).cost
     loop = dataclasses.replace(cp, stop_poses=0)     # the loop's poses are the rollout's
     n1, p = PP.horizon + 1, P_POINTS
@@ -188,7 +206,7 @@ def test_surface_cost_per_metre_against_a_loop(rng):
         xd = jnp.zeros((PP.horizon, 6), jnp.float32)
         got = float(rollout_cost(loop, jnp.asarray(states), xd, goal, m, None,
                                  expected=jnp.asarray(expected))[2])
-        want = cp.w_surface * sum(abs(float(states[i, S.V])) * PP.dt / ref_m
+        want = cp.w_surface * sum(abs(float(states[i, S.V])) * PP.dt_s / ref_m
                                   * float(np.sum(expected[i], dtype=np.float64))
                                   for i in range(n1))
         assert got == pytest.approx(want, rel=1e-5)
@@ -207,7 +225,7 @@ def test_surface_cost_per_metre_against_a_loop(rng):
     costs = {}
     for name, force in (("on", 0.0), ("brake", -6000.0)):
         u = jnp.tile(jnp.asarray([0.0, force], jnp.float32), (PP.horizon, 1))
-        states, _, xd = mppi.rollout(PP, x0, jnp.zeros(2), u)
+        states, _, xd = kernels.rollout(PP, x0, jnp.zeros(2), u)
         costs[name] = float(rollout_cost(cp, states, xd, goal, wall, ZERO_VAR)[2])
     assert costs["on"] > costs["brake"] >= 0.0
 
@@ -308,7 +326,7 @@ def test_native_expected_surface_matches_the_closed_form(rng):
     def kernel(var, threads):
         return np.asarray(native.expected_surface(
             mean, rows, cols, outside, var, h0, resolution=0.2, grad=c.grad_threshold,
-            step=c.step_threshold, height=c.height_threshold, n_across=c.n_across,
+            step=c.step_threshold, height=c.height_threshold_m, n_across=c.footprint_points,
             n_threads=threads))
 
     got = kernel(qvar, 1)
@@ -332,16 +350,16 @@ def test_fused_surface_kernel_equals_the_update_then_the_surface(monkeypatch,
     params, m, states = va_planning_problem
 
     def terms(p):
-        return jax.jit(lambda s: mppi.surface_terms(p, m, s))(states)
+        return jax.jit(lambda s: kernels.surface_terms(p, m, s))(states)
 
     def threads(n):
-        return dataclasses.replace(params, threads=n,
-                                   visibility=dataclasses.replace(params.visibility, threads=n))
+        return dataclasses.replace(params, va_threads=n,
+                                   visibility=dataclasses.replace(params.visibility, va_threads=n))
 
     qvar, fused = terms(threads(3))
     assert qvar is None
     np.testing.assert_array_equal(np.asarray(terms(threads(1))[1]), np.asarray(fused))
-    monkeypatch.setattr(mppi, "native_applies", lambda *a: False)
+    monkeypatch.setattr(kernels, "surface_form", lambda *a: "native")
     qvar, split = terms(params)
     assert qvar is not None
     np.testing.assert_array_equal(np.asarray(split), np.asarray(fused))
@@ -433,7 +451,7 @@ def test_priced_poses_walk_the_models_stopping_distance_straight_on(rng):
     for k in range(5):
         v, s, t, h = float(states[k, -1, S.V]), 0.0, 0.0, 1e-4
         while v > 0.0:                      # the reference: walk the stop
-            dec = 0.0 if t < c.dt else min(a, rate * (t - c.dt))
+            dec = 0.0 if t < c.dt_s else min(a, rate * (t - c.dt_s))
             s, v, t = s + v * h - 0.5 * dec * h * h, v - dec * h, t + h
         last = states[k, -1]
         for j, f in enumerate((1 / 3, 2 / 3, 1.0)):

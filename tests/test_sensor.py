@@ -72,9 +72,9 @@ def test_depth_matches_a_brute_force_float64_march(rng, kernel):
         x, y, yaw = rng.uniform(8, 32), rng.uniform(8, 32), rng.uniform(-math.pi, math.pi)
         z = float(bilinear(hm, x, y, origin, 0.2))
         depth, pos, rot = render(cam, hm, origin, 0.2, x, y, z, yaw)
-        assert depth.shape == (cam.height, cam.width) and depth.dtype == np.float32
-        for i in rng.choice(cam.height * cam.width, 120, replace=False):
-            r, c = divmod(int(i), cam.width)
+        assert depth.shape == (cam.height_px, cam.width_px) and depth.dtype == np.float32
+        for i in rng.choice(cam.height_px * cam.width_px, 120, replace=False):
+            r, c = divmod(int(i), cam.width_px)
             ref = reference_depth(hm, origin, 0.2, pos, rot, dirs[r, c], cam.range_m)
             got = float(depth[r, c])
             if ref == 0.0 or got == 0.0:
@@ -100,7 +100,7 @@ def test_native_ray_caster_matches_the_jax_form(rng):
     sky."""
     cfg = load_config(overrides=["sensor.width_px=64", "sensor.height_px=36"])
     cam = CameraParams.from_config(cfg.sensor)
-    cam_jax, cam_native = (dataclasses.replace(cam, kernel=k) for k in ("jax", "native"))
+    cam_jax, cam_native = (dataclasses.replace(cam, render_kernel=k) for k in ("jax", "native"))
     hm = random_terrain(rng)
     origin = (float(rng.uniform(-3, 3)), float(rng.uniform(-3, 3)))
     poses = [(*rng.uniform(2, 38, 2), rng.uniform(-math.pi, math.pi)) for _ in range(6)]
@@ -131,7 +131,7 @@ def test_camera_pose_geometry():
     np.testing.assert_allclose(rot.T @ rot, np.eye(3), atol=1e-12)
     fwd = rot @ np.array([0, 0, 1.0])
     assert fwd[1] > 0.9 and fwd[2] < 0      # looks along +y, pitched down
-    assert math.isclose(2 * math.degrees(math.atan((cam.width / 2) / cam.fx)), 72.0)
+    assert math.isclose(2 * math.degrees(math.atan((cam.width_px / 2) / cam.fx)), 72.0)
 
 
 def test_auto_uses_the_jax_form_where_a_native_library_does_not_load(caplog):

@@ -11,7 +11,8 @@ import pytest
 from common.config import load_config
 from services.planner import native
 from services.planner.costs import OFFSETS
-from services.planner.visibility import VisibilityParams, decayed_variance, visible_points
+from services.planner.kernels import decayed_variance as batched_decayed_variance
+from services.planner.visibility import VisibilityParams, visible_points
 from services.plant.dynamics import Reaction
 
 CFG = load_config(overrides=['planner.controller="va"'])
@@ -21,8 +22,8 @@ VP = VisibilityParams.from_config(CFG)
 def float64_ray_points(vp, state, res):
     """World x, y (rays, points) of one pose's ray points in float64."""
     x, y, psi = (float(v) for v in state[3:6])
-    ang = np.linspace(-vp.fov_rad / 2, vp.fov_rad / 2, vp.rays)[:, None]
-    rng = np.linspace(vp.ray_min_m, vp.ray_max_m, vp.points)[None, :]
+    ang = np.linspace(-vp.fov_rad / 2, vp.fov_rad / 2, vp.visibility_rays)[:, None]
+    rng = np.linspace(vp.visibility_min_m, vp.visibility_max_m, vp.visibility_points)[None, :]
     bx, by = vp.mount_forward_m + rng * np.cos(ang), rng * np.sin(ang)
     return (x + math.cos(psi) * bx - math.sin(psi) * by,
             y + math.sin(psi) * bx + math.cos(psi) * by)
@@ -35,13 +36,13 @@ def reference_visibility(vp, mean, state, rows, cols, res):
     vr, vc = int(math.floor(state[4] / res)), int(math.floor(state[3] / res))
     ground = mean[min(max(vr, 0), n - 1), min(max(vc, 0), n - 1)]
     vis = np.zeros(rows.shape, bool)
-    for r in range(vp.rays):
-        for k in range(vp.points):
+    for r in range(vp.visibility_rays):
+        for k in range(vp.visibility_points):
             row, col = rows[r, k], cols[r, k]
             if not (0 <= row < n and 0 <= col < n):
                 break
             vis[r, k] = True
-            if mean[row, col] > ground + vp.height_m:
+            if mean[row, col] > ground + vp.visibility_height_m:
                 break
     return vis
 
@@ -56,7 +57,8 @@ def reference_counted(vp, state, vis):
     v = math.hypot(float(state[0]), float(state[1]))
     stop = float(vp.reaction.distance(np.float64(v), vp.react_s, vp.react_lateral_m))
     stop += vp.react_ahead_m                   # measured from the front edge, not the camera
-    return vis & (np.linspace(vp.ray_min_m, vp.ray_max_m, vp.points) >= stop)[None, :]
+    ranges = np.linspace(vp.visibility_min_m, vp.visibility_max_m, vp.visibility_points)
+    return vis & (ranges >= stop)[None, :]
 
 
 def reference_decay(vp, variance, seen, rows, cols):
@@ -68,15 +70,15 @@ def reference_decay(vp, variance, seen, rows, cols):
     raw = np.zeros((n, n))
     out = np.zeros(rows.shape)
     for i in range(rows.shape[0]):
-        if i >= vp.lag_steps:
-            np.add.at(raw, seen[i - vp.lag_steps], vp.count_value)
+        if i >= vp.visibility_lag_steps:
+            np.add.at(raw, seen[i - vp.visibility_lag_steps], vp.count_value)
         padded = np.pad(raw, half)
         splat = np.zeros((n, n))
         for dy in range(-half, half + 1):
             for dx in range(-half, half + 1):
                 splat += kern[dy + half, dx + half] * padded[half + dy:half + dy + n,
                                                              half + dx:half + dx + n]
-        out[i] = (variance * np.exp(-vp.gamma * splat))[rows[i], cols[i]]
+        out[i] = (variance * np.exp(-vp.decay_gamma * splat))[rows[i], cols[i]]
     return out
 
 
@@ -100,6 +102,13 @@ def random_problem(rng, n=200, steps=12):
     rows[:, :4] = np.clip((y[:, None] / 0.2 + rng.integers(-20, 20, (steps, 4))), 1, n - 2)
     cols[:, :4] = np.clip((x[:, None] / 0.2 + rng.integers(0, 135, (steps, 4))), 1, n - 2)
     return mean, variance, states, rows, cols
+
+
+def decayed_variance(vp, mean, variance, origin, resolution, states, rows, cols, offsets):
+    """One trajectory through the update in `vp.va_kernel`'s form (services/planner/
+    kernels.py): states (N+1, 6), rows/cols (N+1, P)."""
+    return batched_decayed_variance(vp, mean, variance, origin, resolution, states[None],
+                                    rows[None], cols[None], offsets)[0]
 
 
 def solve_random_problem(vp, rng, decayed: float = 0.1):
@@ -139,11 +148,12 @@ CAUSALITY = [(1, None), (4, None), (1, BRAKES), (1, Reaction.braking_only(3.6))]
 def test_decayed_variance_matches_the_dense_float64_reference(rng, lag, decel):
     """The vectorised JAX form: every ray point's cell and visibility checked, then the
     decayed variance at every query against the dense float64 computation."""
-    vp = dataclasses.replace(VP, lag_steps=lag, reaction=decel, backend="jax")
+    vp = dataclasses.replace(VP, visibility_lag_steps=lag, reaction=decel, va_kernel="jax")
     mean, variance, states, got, rows, cols = solve_random_problem(vp, rng)
     seen = []
     for st in states:
-        k_row, k_col, k_vis = (np.asarray(a).reshape(vp.rays, vp.points) for a in visible_points(
+        grid = (vp.visibility_rays, vp.visibility_points)
+        k_row, k_col, k_vis = (np.asarray(a).reshape(grid) for a in visible_points(
             vp, jnp.asarray(mean), jnp.zeros(2), 0.2, jnp.asarray(st)))
         # every ray point checked: the kernel's cell is the float64 cell, except for points
         # within float32 rounding of a cell boundary
@@ -172,8 +182,8 @@ def test_native_kernel_matches_the_dense_float64_reference(rng, lag, decel, spla
     splat's reach of a ray point that lies within float32 rounding of a cell boundary are
     left out (and of the rest of its ray, where the two cells differ in blocking it). The
     paper's 9 x 9 splat takes the kernel's compile-time path, 7 x 7 its general one."""
-    vp = dataclasses.replace(VP, lag_steps=lag, reaction=decel, splat_size=splat,
-                             backend="native")
+    vp = dataclasses.replace(VP, visibility_lag_steps=lag, reaction=decel, splat_size=splat,
+                             va_kernel="native")
     mean, variance, states, got, rows, cols = solve_random_problem(vp, rng)
     seen, doubtful = [], np.zeros(mean.shape, bool)
     half = vp.splat_size // 2
@@ -184,7 +194,7 @@ def test_native_kernel_matches_the_dense_float64_reference(rng, lag, decel, spla
         counted = reference_counted(vp, st, vis)
         seen.append((f_row[counted], f_col[counted]))
         px, py = float64_ray_points(vp, st.astype(np.float64), 0.2)
-        ground = mean[int(st[4] / 0.2), int(st[3] / 0.2)] + vp.height_m
+        ground = mean[int(st[4] / 0.2), int(st[3] / 0.2)] + vp.visibility_height_m
         for r, k in np.argwhere(ambiguous):
             # the point may count in the neighbouring cell; if the two cells differ in
             # blocking the ray, the rest of the ray may be seen or not
@@ -192,7 +202,7 @@ def test_native_kernel_matches_the_dense_float64_reference(rng, lag, decel, spla
                      for dy in (-2e-5, 2e-5) for dx in (-2e-5, 2e-5)}
             blocks = {not (0 <= a < mean.shape[0] and 0 <= b < mean.shape[1])
                       or mean[a, b] > ground for a, b in cells}
-            for j in range(k, vp.points if len(blocks) > 1 else k + 1):
+            for j in range(k, vp.visibility_points if len(blocks) > 1 else k + 1):
                 r0, c0 = f_row[r, j], f_col[r, j]
                 doubtful[max(r0 - half - 1, 0):r0 + half + 2,
                          max(c0 - half - 1, 0):c0 + half + 2] = True
@@ -210,9 +220,9 @@ def test_blocked_rays_stop_at_the_first_blocker():
     state = jnp.asarray([0, 0, 0, 18.0, 20.0, 0.0], jnp.float32)
     row, col, vis = (np.asarray(a) for a in visible_points(VP, jnp.asarray(mean), jnp.zeros(2),
                                                            0.2, state))
-    centre_rays = np.abs(np.linspace(-36, 36, VP.rays)) < 10
-    vis = vis.reshape(VP.rays, VP.points)
-    col = col.reshape(VP.rays, VP.points)
+    centre_rays = np.abs(np.linspace(-36, 36, VP.visibility_rays)) < 10
+    vis = vis.reshape(VP.visibility_rays, VP.visibility_points)
+    col = col.reshape(VP.visibility_rays, VP.visibility_points)
     for r in np.nonzero(centre_rays)[0]:
         seen = col[r][vis[r]]
         assert seen.max() <= 114 and (seen >= 110).any()   # the wall is seen, nothing behind
@@ -225,7 +235,6 @@ def test_batched_update_equals_one_trajectory_at_a_time(rng, backend):
     nothing of one may leak into the next, whatever the chunking (jax) or the split of
     the trajectories over threads (native)."""
 
-    from services.planner.visibility import batched_decayed_variance
     if backend == "native" and not native.available():
         pytest.skip("the native kernel does not build here")
     n, k, steps = 100, 5, 8
@@ -241,14 +250,14 @@ def test_batched_update_equals_one_trajectory_at_a_time(rng, backend):
     cols = np.clip(states[:, :, 3:4] / 0.2 + rng.integers(0, 40, (k, steps, 6)), 1, n - 2)
     rows, cols = rows.astype(np.int32), cols.astype(np.int32)
     args = (jnp.asarray(mean), jnp.asarray(variance), jnp.zeros(2), 0.2)
-    vp1 = dataclasses.replace(VP, backend=backend, threads=1)
+    vp1 = dataclasses.replace(VP, va_kernel=backend, va_threads=1)
     one = np.stack([np.asarray(decayed_variance(vp1, *args, jnp.asarray(states[j]),
                                                 jnp.asarray(rows[j]), jnp.asarray(cols[j]),
                                                 OFFSETS)) for j in range(k)])
     prior = np.concatenate([variance[rows + dr, cols + dc] for dr, dc in OFFSETS], axis=-1)
     assert (one < prior * 0.5).mean() > 0.05                  # the trajectories did see
-    variants = ([dataclasses.replace(vp1, chunk=c) for c in (1, 2, 8)] if backend == "jax"
-                else [dataclasses.replace(vp1, threads=t) for t in (1, 2, 3)])
+    variants = ([dataclasses.replace(vp1, va_chunk=c) for c in (1, 2, 8)] if backend == "jax"
+                else [dataclasses.replace(vp1, va_threads=t) for t in (1, 2, 3)])
     for vp in variants:
         got = np.asarray(batched_decayed_variance(vp, *args, jnp.asarray(states),
                                                   jnp.asarray(rows), jnp.asarray(cols), OFFSETS))
@@ -262,13 +271,13 @@ def test_native_and_jax_forms_agree_on_a_planning_problem(va_planning_problem):
     """Both forms on one VA-MPPI problem (K = 64 rollouts on the offroad map): equal except
     where a ray point sits within float32 rounding of a cell boundary (their sines and
     cosines may differ in the last bit), which leaves only a few of the 200 k queries."""
-    from services.planner import mppi
+    from services.planner import kernels
     params, m, states = va_planning_problem
     out = {}
     for backend in ("jax", "native"):
         p = dataclasses.replace(params, visibility=dataclasses.replace(params.visibility,
-                                                                       backend=backend))
-        out[backend] = np.asarray(jax.jit(lambda s, p=p: mppi.query_variance(p, m, s))(states))
+                                                                       va_kernel=backend))
+        out[backend] = np.asarray(jax.jit(lambda s, p=p: kernels.query_variance(p, m, s))(states))
     a, b = out["jax"], out["native"]
     assert (a < 0.5 * np.asarray(m.variance).max()).mean() > 0.3      # much was seen
     close = np.isclose(a, b, rtol=1e-4, atol=1e-7)
@@ -280,7 +289,7 @@ def test_native_kernel_clips_cells_off_the_map_like_the_jax_form(rng):
     """Footprint cells at and beyond the map's edges: the kernel clips the query cells to
     the map and the patches inside it as the JAX form does (no stray read), and refuses
     inconsistent shapes with an error."""
-    from services.planner.visibility import batched_decayed_variance, offset_kernels
+    from services.planner.visibility import offset_kernels
     n = 50
     mean = jnp.asarray(rng.normal(size=(n, n)) * 0.1, jnp.float32)
     variance = jnp.asarray(rng.uniform(0.5, 3.0, (n, n)), jnp.float32)
@@ -292,7 +301,7 @@ def test_native_kernel_clips_cells_off_the_map_like_the_jax_form(rng):
     cols = np.tile(np.array([-7, 3, 25, n + 2], np.int32), (2, 6, 1))
     out = {}
     for backend in ("jax", "native"):
-        vp = dataclasses.replace(VP, backend=backend)
+        vp = dataclasses.replace(VP, va_kernel=backend)
         out[backend] = np.asarray(batched_decayed_variance(
             vp, mean, variance, jnp.zeros(2), 0.2, jnp.asarray(states), jnp.asarray(rows),
             jnp.asarray(cols), OFFSETS))
@@ -304,7 +313,8 @@ def test_native_kernel_clips_cells_off_the_map_like_the_jax_form(rng):
                                       jnp.zeros((2, 6), jnp.int32), jnp.asarray(rows),
                                       jnp.asarray(cols), OFFSETS[:3],
                                       VP.ray_grid(), w, resolution=0.2, height=1.0, gamma=0.3,
-                                      rays=VP.rays, points=VP.points, lag=1, pad=5,
+                                      rays=VP.visibility_rays, points=VP.visibility_points,
+                                      lag=1, pad=5,
                                       n_threads=2))
 
 
@@ -324,8 +334,9 @@ def test_native_kernel_separable_and_general_paths_agree(rng):
             jnp.asarray(mean), jnp.asarray(variance), jnp.zeros(2), jnp.asarray(states[None]),
             jnp.zeros((1, states.shape[0]), jnp.int32), jnp.asarray(rows[None]),
             jnp.asarray(cols[None]), OFFSETS, VP.ray_grid(), weights.astype(np.float32),
-            resolution=0.2, height=VP.height_m, gamma=VP.gamma, rays=VP.rays,
-            points=VP.points, lag=1, pad=VP.splat_size // 2 + 1, n_threads=1)))
+            resolution=0.2, height=VP.visibility_height_m, gamma=VP.decay_gamma,
+            rays=VP.visibility_rays,
+            points=VP.visibility_points, lag=1, pad=VP.splat_size // 2 + 1, n_threads=1)))
     seen = out[0] < 0.5 * variance.max()
     assert seen.mean() > 0.1                                    # the test has teeth
     np.testing.assert_allclose(out[1], out[0], rtol=1e-4, atol=1e-7)

@@ -15,12 +15,11 @@ The camera, the vehicle and the control period are the experiment's own
 directory without it: the given configuration).
 
 The path of a run record is 10 Hz (t, X, Y, V, psi), the vehicle's (and the
-camera's) heading psi recorded since session 26; every sample is a pose, a
-repeat of the one before only once. An older record has no psi: its heading at
-sample i is then the direction from sample i-1 to i, the course, not where the
-camera points (a vehicle sliding in a turn moved 11-16 degrees off its heading:
-docs/results.md, session 26), and samples below 0.2 m/s are skipped (standing
-still, the course is undefined).
+camera's) heading psi recorded from record format 2 on (deploy/sim/experiment.py);
+every sample is a pose, a repeat of the one before only once. A format-1 record has no
+psi: its heading at sample i is then the direction from sample i-1 to i, the course, not
+where the camera points (a vehicle sliding in a turn moves 11-16 degrees off its heading),
+and samples below 0.2 m/s are skipped (standing still, the course is undefined).
 """
 
 from __future__ import annotations
@@ -124,7 +123,7 @@ def first_sightings(cfg: Config, scn: Scenario, poses, which: list[int],
     cam = sensor.CameraParams.from_config(cfg.sensor)
     half = cfg.vehicle.footprint_length_m / 2.0
     reach = cam.range_m + cam.mount_forward_m + 1.0         # farther than this: no return
-    half_fov = math.atan2(cam.width / 2.0, cam.fx)
+    half_fov = math.atan2(cam.width_px / 2.0, cam.fx)
     found: dict[int, Sighting] = {}
     for t, x, y, yaw, v in poses:
         if len(found) == len(which):

@@ -30,6 +30,7 @@ from common.scenarios import scenario_of
 from deploy.bench.device import device_info, heading
 from deploy.recording.timing import stats_ms
 from services.planner import mppi, native
+from services.planner.params import PlannerParams
 
 
 @dataclass
@@ -73,7 +74,7 @@ def planner_inputs(cfg: Config) -> tuple:
 def planner_case(cfg: Config, controller: str, samples: int, inputs: tuple) -> Case:
     run_cfg = cfg.replace(**{"planner.controller": controller, "planner.samples": samples,
                              "planner.iterations": 1})
-    params = mppi.PlannerParams.from_config(run_cfg)
+    params = PlannerParams.from_config(run_cfg)
     x0, u0, goal, mean, var, origin, res = inputs
     state = mppi.initial_state(params, 0)
     args = (state, *(jnp.asarray(a) for a in (x0, u0, goal, mean, var, origin)))
@@ -156,16 +157,18 @@ def bench_mapper(cfg: Config, reps: int, sizes: tuple[tuple[int, int], ...] = ((
             t2 = time.perf_counter()
             payload = encode(Map(Header(i, 0.0, time.time(), "bench/0"), np.asarray(done.mean),
                                  np.asarray(done.variance), np.asarray(params.origin, float),
-                                 params.resolution))
+                                 params.resolution_m))
             t3 = time.perf_counter()
             for k, dt in (("fuse", t1 - t0), ("inpaint", t2 - t1), ("encode", t3 - t2),
                           ("total", t3 - t0)):
                 stages[k].append(dt)
-        cases.append({"width": cam.width, "height": cam.height, "compile_s": round(compile_s, 2),
+        cases.append({"width": cam.width_px, "height": cam.height_px,
+                      "compile_s": round(compile_s, 2),
                       "map_bytes": len(payload),
                       **{k: stats_ms(v) for k, v in stages.items()}})
     return {"benchmark": "mapper", **device_info(),
-            "settings": {"map_cells": [params.size, params.size], "reps": reps}, "cases": cases}
+            "settings": {"map_cells": [params.size_cells, params.size_cells], "reps": reps},
+            "cases": cases}
 
 
 def mapper_table(result: dict[str, Any]) -> str:

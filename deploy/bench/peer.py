@@ -33,7 +33,7 @@ import numpy as np
 from common.config import Config
 from deploy.bench.device import device_info, heading
 from deploy.bench.kernels import planner_case, planner_inputs
-from services.planner import mppi
+from services.planner import kernels
 from services.planner.costs import (
     CostParams,
     MapView,
@@ -41,6 +41,7 @@ from services.planner.costs import (
     per_metre_weight,
     rollout_cost,
 )
+from services.planner.params import PlannerParams
 from services.plant.dynamics import S, clamp_control, derivatives, integrate
 
 
@@ -84,8 +85,8 @@ def torch_cost(torch: Any, c: CostParams, states: Any, xdots: Any, goal: Any, me
     n = c.horizon
     d = goal_distance(c, states, goal, TorchOps(torch, states.dtype, states.device))
     V = states[..., S.V]
-    i2, i3 = int(round(2.0 / c.dt)), int(round(3.0 / c.dt))
-    vf = c.time_speed_floor
+    i2, i3 = int(round(2.0 / c.dt_s)), int(round(3.0 / c.dt_s))
+    vf = c.time_speed_floor_mps
     s_time = c.w_time * (d[:, i2] / (4 * V[:, i2].clamp(min=vf))
                          + d[:, i3] / (2 * V[:, i3].clamp(min=vf))
                          + d[:, n] / V[:, n].clamp(min=vf))
@@ -95,9 +96,9 @@ def torch_cost(torch: Any, c: CostParams, states: Any, xdots: Any, goal: Any, me
     a_x = xdots[..., S.V] - x[..., S.v] * x[..., S.r]
     a_tot = torch.sqrt(a_x * a_x + a_y * a_y)
     beta = torch.atan2(x[..., S.v], x[..., S.V].clamp(min=0.5))
-    s_dyn = c.w_dynamic * ((a_y.abs() >= c.a_roll).float() + (a_tot >= c.a_max).float()
-                           + (beta.abs() >= c.beta_max).float()
-                           + (x[..., S.v].abs() >= c.v_lat_max).float()).sum(-1)
+    s_dyn = c.w_dynamic * ((a_y.abs() >= c.a_roll_mps2).float() + (a_tot >= c.a_max_mps2).float()
+                           + (beta.abs() >= c.beta_max_rad).float()
+                           + (x[..., S.v].abs() >= c.v_lat_max_mps).float()).sum(-1)
 
     h, w = mean.shape
     fp = torch.as_tensor(np.asarray(c.footprint), dtype=states.dtype, device=states.device)
@@ -112,7 +113,7 @@ def torch_cost(torch: Any, c: CostParams, states: Any, xdots: Any, goal: Any, me
     gx = (mean[row, col + 1] - mean[row, col - 1]) / (2 * resolution)
     gy = (mean[row + 1, col] - mean[row - 1, col]) / (2 * resolution)
     step_t = torch.cat([torch.zeros_like(hc[:, :1]), hc[:, 1:] - hc[:, :-1]], dim=1)
-    first = (torch.arange(hc.shape[-1], device=hc.device) % c.n_across) == 0
+    first = (torch.arange(hc.shape[-1], device=hc.device) % c.footprint_points) == 0
     step_a = torch.where(first, torch.zeros_like(hc), hc - torch.roll(hc, 1, dims=-1))
     r0 = int(math.floor((float(states[0, 0, S.Y]) - float(origin[1])) / resolution))
     c0 = int(math.floor((float(states[0, 0, S.X]) - float(origin[0])) / resolution))
@@ -120,9 +121,9 @@ def torch_cost(torch: Any, c: CostParams, states: Any, xdots: Any, goal: Any, me
     hits = ((gx.abs() > c.grad_threshold).float() + (gy.abs() > c.grad_threshold).float()
             + (step_t.abs() > c.step_threshold).float()
             + (step_a.abs() > c.step_threshold).float()
-            + ((hc - h0).abs() > c.height_threshold).float())
+            + ((hc - h0).abs() > c.height_threshold_m).float())
     per_step = torch.where(outside, torch.full_like(hits, 5.0), hits)
-    if c.surface_distance > 0.0:            # priced per metre crossed, as costs.rollout_cost
+    if c.surface_distance_m > 0.0:            # priced per metre crossed, as costs.rollout_cost
         per_step = per_step * per_metre_weight(c, V, torch)[..., None]
     s_surf = c.w_surface * per_step.sum((1, 2))
 
@@ -130,7 +131,8 @@ def torch_cost(torch: Any, c: CostParams, states: Any, xdots: Any, goal: Any, me
     phi = torch.sigmoid(2.0 * (c.activation_distance_m - d0))
     ratio = d[:, n] / d0.clamp(min=1e-3)
     s_dist = c.w_dist * (ratio + 2.0 * phi * ratio)
-    s_acc = c.w_acc * V[:, n] ** 2 * V[:, n].abs() / (2.0 * d[:, n].clamp(min=c.acc_distance_floor))
+    s_acc = (c.w_acc * V[:, n] ** 2 * V[:, n].abs()
+             / (2.0 * d[:, n].clamp(min=c.acc_distance_floor_m)))
     psi_w = torch.arange(n + 1, device=states.device, dtype=states.dtype) / n
     dpsi = (states[..., S.PSI] - goal[2] + math.pi) % (2 * math.pi) - math.pi
     s_or = c.w_orientation * phi * (dpsi.abs() * psi_w).sum(-1)
@@ -156,16 +158,16 @@ def bench_peer(cfg: Config, samples: list[int], reps: int) -> dict[str, Any]:
           for k, v in (("x0", x0), ("goal", goal), ("mean", mean), ("origin", origin))}
     cases, agreement = [], {}
     for k in samples:
-        params = mppi.PlannerParams.from_config(cfg.replace(**{
+        params = PlannerParams.from_config(cfg.replace(**{
             "planner.controller": "deterministic", "planner.samples": k, "planner.iterations": 1}))
         ours = planner_case(cfg, "deterministic", k, inputs)
         v, lim = params.vehicle, params.limits
 
         def dynamics(state: Any, action: Any, v=v, lim=lim, params=params) -> Any:
             x, u_last = state[:, :6], state[:, 6:8]
-            u = clamp_control(action, u_last, lim, params.dt, ops)
+            u = clamp_control(action, u_last, lim, params.dt_s, ops)
             xdot = derivatives(v, x, u, ops)
-            return torch.cat([integrate(v, x, u, params.dt, params.substeps, ops), u, xdot], 1)
+            return torch.cat([integrate(v, x, u, params.dt_s, params.substeps, ops), u, xdot], 1)
 
         def terminal(states: Any, actions: Any, c=params.cost) -> Any:
             s = states[0]
@@ -183,7 +185,7 @@ def bench_peer(cfg: Config, samples: list[int], reps: int) -> dict[str, Any]:
         # the port agrees with ours on the same rollouts (ours: jax, float32)
         ctrl = np.random.default_rng(k).normal(size=(k, params.horizon, 2)) * params.noise_std
         ctrl = ctrl.astype(np.float32)
-        xs, _, xd = jax.vmap(mppi.rollout, in_axes=(None, None, None, 0))(
+        xs, _, xd = jax.vmap(kernels.rollout, in_axes=(None, None, None, 0))(
             params, jnp.asarray(x0), jnp.asarray(u0), jnp.asarray(ctrl))
         m = MapView(jnp.asarray(mean), jnp.asarray(var), jnp.asarray(origin), float(res))
         zero = jnp.zeros((params.horizon + 1, 5 * len(params.cost.footprint)), jnp.float32)

@@ -87,15 +87,29 @@ def saved_config(cfg: Config, scenarios: list[str]) -> Config:
                           "episode.layout": resolve_layout(scenarios[0], cfg.episode.layout)})
 
 
+# what a record holds, by version: 1, a path of (t, X, Y, V); 2, the heading psi added to
+# it; 3, the scenario layout too. A record without the field is told by its content.
+RECORD_FORMAT = 3
+
+
+def record_format(r: dict[str, Any]) -> int:
+    """A record's format (RECORD_FORMAT's versions)."""
+    if "format" in r:
+        return int(r["format"])
+    if "layout" in r:
+        return 3
+    return 2 if r.get("path") and len(r["path"][0]) == 5 else 1
+
+
 def run_layout(r: dict[str, Any]) -> int:
-    """The scenario layout a record ran on: records before session 27 carry none, and
+    """The scenario layout a record ran on: a record of format 1 or 2 carries none, and
     ran on layout 1 (common/scenarios/builtin)."""
     return int(r.get("layout", 1))
 
 
 def run_record(cfg: Config, result) -> dict[str, Any]:
-    """One run's record: the summary, its 10 Hz path (t, X, Y, V, psi) and solve times.
-    Records before session 26 have no psi column, before session 27 no layout."""
+    """One run's record (format RECORD_FORMAT): the summary, its 10 Hz path (t, X, Y, V,
+    psi) and solve times."""
     traj = result.trajectory                     # rows (t, state): S.V, S.X, S.Y, S.PSI at 1 + S.*
     every = max(1, int(round(cfg.plant.rate_hz * cfg.planner.dt_s)))
     path = traj[::every][:, [0, 1 + S.X, 1 + S.Y, 1 + S.V, 1 + S.PSI]]
@@ -108,7 +122,7 @@ def run_record(cfg: Config, result) -> dict[str, Any]:
                solve_ms=[round(x, 2) for x in result.solve_ms],
                scenario_seed=cfg.episode.scenario_seed,
                layout=resolve_layout(cfg.episode.scenario, cfg.episode.layout),
-               config_digest=config_digest(cfg))
+               config_digest=config_digest(cfg), format=RECORD_FORMAT)
     if result.collision is not None:
         rec["collision"] = result.collision
     return rec

@@ -161,7 +161,7 @@ def run_episode(cfg: Config, cores: Cores | None = None,
     max_var = MAPPED_VARIANCE_FRACTION * cores.mapper.core.prior_variance
     mapped_at: dict[int, float] = {}
     # the map on the scenario's grid (the default): when it is not, no obstacle counts as mapped
-    track = cores.mapper.core.size == cores.scenario.heightmap.shape[0]
+    track = cores.mapper.core.size_cells == cores.scenario.heightmap.shape[0]
     tick = 0
     while not pr.done:
         wall = pr.sim.t                                 # the simulated wall clock

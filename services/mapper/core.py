@@ -31,32 +31,31 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from common.config import Config
+from common.config import Config, by_name
 
 
 @dataclass(frozen=True)
 class MapperParams:
-    size: int
-    resolution: float
-    origin: tuple[float, float]
+    """Named as their keys of `[mapper]` and `[sensor]` (docs/parameters.md), the derived
+    ones commented."""
+    size_cells: int
+    resolution_m: float
+    origin: tuple[float, float]       # derived: the scenario's map origin
     prior_variance: float
     known_radius_m: float
     known_variance: float
-    sigma0: float
-    k_per_m: float
+    noise_sigma0_m: float
+    noise_k_per_m: float
     min_variance: float
-    inpaint_radius: int
+    inpaint_radius_cells: int
     occluder_height_m: float
-    hfov_rad: float
-    range_m: float
+    hfov_rad: float                   # derived: sensor.hfov_deg
+    range_m: float                    # [sensor]
 
     @classmethod
     def from_config(cls, cfg: Config, origin: tuple[float, float] = (0.0, 0.0)) -> MapperParams:
-        m = cfg.mapper
-        return cls(m.size_cells, m.resolution_m, origin, m.prior_variance, m.known_radius_m,
-                   m.known_variance, m.noise_sigma0_m, m.noise_k_per_m, m.min_variance,
-                   m.inpaint_radius_cells, m.occluder_height_m, math.radians(cfg.sensor.hfov_deg),
-                   cfg.sensor.range_m)
+        return by_name(cls, cfg.mapper, cfg.sensor, origin=origin,
+                       hfov_rad=math.radians(cfg.sensor.hfov_deg))
 
 
 @dataclass(frozen=True)
@@ -69,7 +68,7 @@ class MapState:
 
 
 def cell_centres(p: MapperParams) -> tuple[np.ndarray, np.ndarray]:
-    c = (np.arange(p.size) + 0.5) * p.resolution
+    c = (np.arange(p.size_cells) + 0.5) * p.resolution_m
     return np.meshgrid(c + p.origin[0], c + p.origin[1], indexing="xy")
 
 
@@ -77,7 +76,7 @@ def initial_map(p: MapperParams, x: float, y: float, z: float) -> MapState:
     """Prior map around a robot standing at (x, y) on ground elevation z."""
     xx, yy = cell_centres(p)
     near = (xx - x) ** 2 + (yy - y) ** 2 <= p.known_radius_m ** 2
-    mean = np.full((p.size, p.size), z, np.float32)
+    mean = np.full((p.size_cells, p.size_cells), z, np.float32)
     var = np.where(near, p.known_variance, p.prior_variance).astype(np.float32)
     return MapState(mean, var, near)
 
@@ -90,7 +89,7 @@ def restore(p: MapperParams, mean: np.ndarray, variance: np.ndarray) -> MapState
 
 def measurement_variance(p: MapperParams, rng: jax.Array) -> jax.Array:
     """Range-dependent measurement variance, (sigma0 + k r^2)^2."""
-    s = p.sigma0 + p.k_per_m * rng * rng
+    s = p.noise_sigma0_m + p.noise_k_per_m * rng * rng
     return s * s
 
 
@@ -104,14 +103,15 @@ def _fuse(p: MapperParams, mean, var, observed, depth, intrinsics, cam_position,
     pc = jnp.stack([(u - cx) / fx * d, (v - cy) / fy * d, d], axis=-1).reshape(-1, 3)
     pw = pc @ cam_rotation.T + cam_position
     rng = jnp.linalg.norm(pc, axis=-1)
-    col = jnp.floor((pw[:, 0] - p.origin[0]) / p.resolution).astype(jnp.int32)
-    row = jnp.floor((pw[:, 1] - p.origin[1]) / p.resolution).astype(jnp.int32)
-    valid = (d.reshape(-1) > 0) & (col >= 0) & (col < p.size) & (row >= 0) & (row < p.size)
+    col = jnp.floor((pw[:, 0] - p.origin[0]) / p.resolution_m).astype(jnp.int32)
+    row = jnp.floor((pw[:, 1] - p.origin[1]) / p.resolution_m).astype(jnp.int32)
+    n_side = p.size_cells
+    valid = (d.reshape(-1) > 0) & (col >= 0) & (col < n_side) & (row >= 0) & (row < n_side)
     prec = jnp.where(valid, 1.0 / measurement_variance(p, rng), 0.0)
-    flat = jnp.where(valid, row * p.size + col, 0)
-    n = p.size * p.size
-    prec_sum = jnp.zeros(n, jnp.float32).at[flat].add(prec).reshape(p.size, p.size)
-    z_sum = jnp.zeros(n, jnp.float32).at[flat].add(prec * pw[:, 2]).reshape(p.size, p.size)
+    flat = jnp.where(valid, row * n_side + col, 0)
+    n = n_side * n_side
+    prec_sum = jnp.zeros(n, jnp.float32).at[flat].add(prec).reshape(n_side, n_side)
+    z_sum = jnp.zeros(n, jnp.float32).at[flat].add(prec * pw[:, 2]).reshape(n_side, n_side)
     seen = prec_sum > 0
     post_prec = 1.0 / var + prec_sum
     new_mean = jnp.where(seen, (mean / var + z_sum) / post_prec, mean)
@@ -133,13 +133,13 @@ def fuse_depth(p: MapperParams, state: MapState, depth: np.ndarray, intrinsics: 
 def fov_mask(p: MapperParams, x: float, y: float, yaw: float) -> tuple[np.ndarray, slice, slice]:
     """Cells inside the camera's horizontal field of view and range, on the window
     (rows, cols) around the robot that contains them."""
-    r = int(math.ceil(p.range_m / p.resolution)) + 2
-    ci = int((x - p.origin[0]) / p.resolution)
-    ri = int((y - p.origin[1]) / p.resolution)
-    rows = slice(max(ri - r, 0), min(ri + r + 1, p.size))
-    cols = slice(max(ci - r, 0), min(ci + r + 1, p.size))
-    cy = (np.arange(rows.start, rows.stop) + 0.5) * p.resolution + p.origin[1]
-    cx = (np.arange(cols.start, cols.stop) + 0.5) * p.resolution + p.origin[0]
+    r = int(math.ceil(p.range_m / p.resolution_m)) + 2
+    ci = int((x - p.origin[0]) / p.resolution_m)
+    ri = int((y - p.origin[1]) / p.resolution_m)
+    rows = slice(max(ri - r, 0), min(ri + r + 1, p.size_cells))
+    cols = slice(max(ci - r, 0), min(ci + r + 1, p.size_cells))
+    cy = (np.arange(rows.start, rows.stop) + 0.5) * p.resolution_m + p.origin[1]
+    cx = (np.arange(cols.start, cols.stop) + 0.5) * p.resolution_m + p.origin[0]
     xx, yy = np.meshgrid(cx - x, cy - y, indexing="xy")
     bearing = np.arctan2(yy, xx) - yaw
     bearing = (bearing + np.pi) % (2 * np.pi) - np.pi
@@ -174,11 +174,11 @@ def inpaint_occluded(p: MapperParams, state: MapState, x: float, y: float, z: fl
     lo, hi = float(source.min()), float(source.max())
     scale = max(hi - lo, 1e-6) / 65535.0
     q = np.clip(np.rint((source - lo) / scale), 0, 65535).astype(np.uint16)
-    pad = p.inpaint_radius + 1
+    pad = p.inpaint_radius_cells + 1
     src = cv2.copyMakeBorder(q, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
     m8 = cv2.copyMakeBorder(mask.astype(np.uint8), pad, pad, pad, pad, cv2.BORDER_CONSTANT,
                             value=0)
-    q_filled = cv2.inpaint(src, m8, p.inpaint_radius, cv2.INPAINT_TELEA)[pad:-pad, pad:-pad]
+    q_filled = cv2.inpaint(src, m8, p.inpaint_radius_cells, cv2.INPAINT_TELEA)[pad:-pad, pad:-pad]
     filled = (lo + q_filled.astype(np.float32) * scale).astype(np.float32)
     mean = state.mean.copy()
     mean[rows, cols] = np.where(mask, filled, window)

@@ -53,7 +53,7 @@ class MapperProtocolParams:
     def from_config(cls, cfg: Config, origin: tuple[float, float]) -> MapperProtocolParams:
         cam = CameraParams.from_config(cfg.sensor)
         return cls(core.MapperParams.from_config(cfg, origin), cfg.episode.clock == "lockstep",
-                   max(cfg.planner.dt_s, 1.0 / cfg.sensor.rate_hz), (cam.height, cam.width),
+                   max(cfg.planner.dt_s, 1.0 / cfg.sensor.rate_hz), (cam.height_px, cam.width_px),
                    tuple(float(v) for v in cam.intrinsics), cam.range_m,
                    topic_key(cfg.episode.vehicle, "depth"))
 
@@ -87,7 +87,7 @@ def map_out(p: MapperProtocolParams, state: core.MapState, stamp: float, inputs:
             episode: int) -> Out:
     return Out("map", stamp, {"mean": state.mean, "variance": state.variance,
                               "origin": np.asarray(p.core.origin, dtype=np.float64),
-                              "resolution": p.core.resolution}, inputs, episode)
+                              "resolution": p.core.resolution_m}, inputs, episode)
 
 
 def on_depth(p: MapperProtocolParams, run: MapperRun, d: Depth, wall: float
@@ -124,10 +124,10 @@ def on_depth(p: MapperProtocolParams, run: MapperRun, d: Depth, wall: float
 
 def map_problem(p: MapperProtocolParams, m: Map) -> str:
     """Why a map cannot be this mapper's, or ''."""
-    n = p.core.size
+    n = p.core.size_cells
     if m.mean.shape != (n, n):
         return f"wrong size {m.mean.shape}, the grid is {(n, n)}"
-    if m.resolution != p.core.resolution or tuple(m.origin) != tuple(p.core.origin):
+    if m.resolution != p.core.resolution_m or tuple(m.origin) != tuple(p.core.origin):
         return "origin or resolution are not the configured grid's"
     return ""
 

@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from common.config import Config
+from common.config import Config, by_name
 from common.geometry import footprint_points, goal_path_length, turning_radius, wrap_angle
 from services.planner.fastmath import FAST
 from services.plant.dynamics import Reaction, S, accelerations
@@ -37,7 +37,9 @@ TERMS = ("time", "dynamic", "surface", "dist", "acc", "orientation")
 
 @dataclass(frozen=True)
 class CostParams:
-    dt: float
+    """The cost's parameters, named as their keys of `[planner]` (docs/parameters.md), the
+    derived ones commented."""
+    dt_s: float
     horizon: int
     w_time: float
     w_dynamic: float
@@ -46,25 +48,26 @@ class CostParams:
     w_acc: float
     w_orientation: float
     activation_distance_m: float
-    time_speed_floor: float
-    acc_distance_floor: float
-    grad_threshold: float          # |gradient| threshold = sqrt(grad_sq_threshold)
-    step_threshold: float          # |step| threshold, m = sqrt(step_sq_threshold)
-    height_threshold: float
-    a_roll: float
-    a_max: float
-    beta_max: float
-    v_lat_max: float
-    footprint: tuple[tuple[float, float], ...]   # (P, 2) body frame: front array, rear array
-    n_across: int
-    estimator: str                 # closed_form | monte_carlo
-    samples: int                   # N_theta of the Monte-Carlo estimate
+    time_speed_floor_mps: float
+    acc_distance_floor_m: float
+    grad_threshold: float          # derived: |gradient| threshold = sqrt(grad_sq_threshold)
+    step_threshold: float          # derived: |step| threshold, m = sqrt(step_sq_threshold)
+    height_threshold_m: float
+    a_roll_mps2: float
+    a_max_mps2: float
+    beta_max_rad: float
+    v_lat_max_mps: float
+    footprint: tuple[tuple[float, float], ...]   # derived: (P, 2) body frame, front array first
+    footprint_points: int          # points per footprint array, across the width
+    surface_estimator: str         # closed_form | monte_carlo
+    surface_samples: int           # N_theta of the Monte-Carlo estimate
     crash_variance: float          # absorbing crash on cells known this well; 0 = off
-    surface_distance: float        # per-step surface weight V dt / this; 0 = off (plain sum)
-    turn_radius: float             # the goal distance along a path this tight; 0 = straight line
-    goal_reach: float              # ... into the goal circle of this radius
+    surface_distance_m: float      # per-step surface weight V dt / this; 0 = off (plain sum)
+    turn_radius: float             # derived: the goal distance along a path this tight; 0 =
+                                   # straight line (goal_distance)
+    goal_radius_m: float           # [episode]: ... into the goal circle of this radius
     stop_poses: int                # the surface cost also prices this many poses of the
-    stop: Reaction                 # ... way to a stop from the horizon's end; 0 = off
+    stop: Reaction                 # derived: ... way to a stop from the horizon's end; 0 = off
 
     @classmethod
     def from_config(cls, cfg: Config) -> CostParams:
@@ -72,16 +75,13 @@ class CostParams:
         margin = 2.0 * p.footprint_margin_m
         fp = footprint_points(v.footprint_length_m + margin, v.footprint_width_m + margin,
                               p.footprint_points, p.footprint_arrays)
-        return cls(p.dt_s, p.horizon, p.w_time, p.w_dynamic, p.w_surface, p.w_dist, p.w_acc,
-                   p.w_orientation, p.activation_distance_m, p.time_speed_floor_mps,
-                   p.acc_distance_floor_m, float(np.sqrt(p.grad_sq_threshold)),
-                   float(np.sqrt(p.step_sq_threshold)), p.height_threshold_m, p.a_roll_mps2,
-                   p.a_max_mps2, p.beta_max_rad, p.v_lat_max_mps,
-                   tuple(map(tuple, fp.tolist())), p.footprint_points, p.surface_estimator,
-                   p.surface_samples, p.crash_variance, p.surface_distance_m,
-                   turning_radius(v.lf_m + v.lr_m, v.steer_max_rad)
-                   if p.goal_distance == "turning" else 0.0, cfg.episode.goal_radius_m,
-                   p.stop_poses, Reaction.from_config(v))
+        return by_name(cls, p, cfg.episode,
+                       grad_threshold=float(np.sqrt(p.grad_sq_threshold)),
+                       step_threshold=float(np.sqrt(p.step_sq_threshold)),
+                       footprint=tuple(map(tuple, fp.tolist())),
+                       turn_radius=turning_radius(v.lf_m + v.lr_m, v.steer_max_rad)
+                       if p.goal_distance == "turning" else 0.0,
+                       stop=Reaction.from_config(v))
 
 
 def exceed_prob(mean: Any, var: Any, threshold: Any) -> Any:
@@ -113,7 +113,7 @@ def footprint_world(c: CostParams, states: Any) -> tuple[Any, Any]:
     psi = states[:, S.PSI]
     # cos and sin materialised, one per step: XLA:CPU otherwise fuses their polynomials into
     # every consumer and evaluates them again for each of the 5 P cells a step reads (2.8 of
-    # the deterministic iteration's 20.7 ms at K = 800; docs/benchmarks.md, session 17).
+    # the deterministic iteration's 20.7 ms at K = 800, measured when this was written).
     # Multiplying by the identity is exact and is a dot, which no elementwise fusion crosses
     # (XLA:CPU expands optimization_barrier before fusing).
     cs = jnp.dot(jnp.stack([FAST.cos(psi), FAST.sin(psi)], axis=-1), jnp.eye(2, dtype=jnp.float32),
@@ -161,7 +161,7 @@ def indicator_quantities(c: CostParams, m: MapView, h: Any, n_pts: int, h0: Any)
     h_c, h_px, h_mx, h_py, h_my = (h[..., k * n_pts:(k + 1) * n_pts] for k in range(5))
     two_res = 2.0 * m.resolution
     zero = jnp.zeros_like(h_c[..., :1, :])
-    first = (jnp.arange(n_pts) % c.n_across) == 0
+    first = (jnp.arange(n_pts) % c.footprint_points) == 0
     return [(h_px - h_mx) / two_res, (h_py - h_my) / two_res,
             jnp.concatenate([zero, h_c[..., 1:, :] - h_c[..., :-1, :]], axis=-2),
             jnp.where(first, 0.0, h_c - jnp.roll(h_c, 1, axis=-1)), h_c - h0]
@@ -182,8 +182,8 @@ def surface_expectation(c: CostParams, m: MapView, rows: Any, cols: Any, outside
     n_pts = outside.shape[1]
     mu = m.mean[rows, cols]
     thresholds = (c.grad_threshold, c.grad_threshold, c.step_threshold, c.step_threshold,
-                  c.height_threshold)
-    if c.estimator == "monte_carlo":
+                  c.height_threshold_m)
+    if c.surface_estimator == "monte_carlo":
         batch = 50
 
         def draw(total, k):
@@ -193,7 +193,7 @@ def surface_expectation(c: CostParams, m: MapView, rows: Any, cols: Any, outside
                        for x, t in zip(q, thresholds, strict=True))
             return total + jnp.sum(hits, axis=0), None
 
-        keys = jax.random.split(key, -(-c.samples // batch))
+        keys = jax.random.split(key, -(-c.surface_samples // batch))
         total, _ = jax.lax.scan(draw, jnp.zeros(outside.shape, jnp.float32), keys)
         expected = total / (keys.shape[0] * batch)
     else:
@@ -201,7 +201,7 @@ def surface_expectation(c: CostParams, m: MapView, rows: Any, cols: Any, outside
         v_c, v_px, v_mx, v_py, v_my = _split5(query_var, n_pts)
         two_res2 = (2.0 * m.resolution) ** 2
         zero = jnp.zeros_like(v_c[:1])
-        first = (jnp.arange(n_pts) % c.n_across) == 0
+        first = (jnp.arange(n_pts) % c.footprint_points) == 0
         variances = [(v_px + v_mx) / two_res2, (v_py + v_my) / two_res2,
                      jnp.concatenate([zero, v_c[1:] + v_c[:-1]]),
                      jnp.where(first, 0.0, v_c + jnp.roll(v_c, 1, axis=1)), v_c]
@@ -243,7 +243,7 @@ def priced_poses(c: CostParams, states: Any) -> Any:
     last = states[..., -1:, :]
     v = jnp.maximum(last[..., S.V], 0.0)
     frac = jnp.arange(1, b + 1, dtype=jnp.float32) / b
-    along = c.stop.stopping(v, c.dt, jnp) * frac
+    along = c.stop.stopping(v, c.dt_s, jnp) * frac
     psi = last[..., S.PSI]
     ext = jnp.broadcast_to(last, last.shape[:-2] + (b, last.shape[-1]))
     ext = ext.at[..., S.X].set(last[..., S.X] + along * jnp.cos(psi))
@@ -260,13 +260,13 @@ def goal_distance(c: CostParams, states: Any, goal: Any, xp: Any = jnp) -> Any:
     dx, dy = goal[0] - states[..., S.X], goal[1] - states[..., S.Y]
     if c.turn_radius <= 0.0:
         return xp.sqrt(dx * dx + dy * dy)
-    return goal_path_length(dx, dy, states[..., S.PSI], c.turn_radius, c.goal_reach, xp)
+    return goal_path_length(dx, dy, states[..., S.PSI], c.turn_radius, c.goal_radius_m, xp)
 
 
 def per_metre_weight(c: CostParams, V: Any, xp: Any = jnp) -> Any:
     """The weight of each step's expected surface indicators when `surface_distance` > 0:
     the distance the vehicle covers in the step, |V| dt, over that length (docs/planner.md)."""
-    return xp.abs(V) * (c.dt / c.surface_distance)
+    return xp.abs(V) * (c.dt_s / c.surface_distance_m)
 
 
 def ground_now(m: MapView, states: Any) -> Any:
@@ -289,17 +289,17 @@ def rollout_cost(c: CostParams, states: Any, xdots: Any, goal: Any, m: MapView,
     caller has it already (VA-MPPI's native kernels), else computed here."""
     n = c.horizon
     V = states[:, S.V]
-    i2, i3 = int(round(2.0 / c.dt)), int(round(3.0 / c.dt))
+    i2, i3 = int(round(2.0 / c.dt_s)), int(round(3.0 / c.dt_s))
     d0, d2, d3, dn = goal_distance(c, states[jnp.array([0, i2, i3, n])], goal)
-    vf = c.time_speed_floor
+    vf = c.time_speed_floor_mps
     s_time = c.w_time * (d2 / (4 * jnp.maximum(V[i2], vf)) + d3 / (2 * jnp.maximum(V[i3], vf))
                          + dn / jnp.maximum(V[n], vf))
 
     _, a_y, a_tot = accelerations(states[:-1], xdots, jnp)
     beta = FAST.arctan2(states[:-1, S.v], jnp.maximum(states[:-1, S.V], 0.5))
     s_dyn = c.w_dynamic * jnp.sum(
-        (jnp.abs(a_y) >= c.a_roll).astype(jnp.float32) + (a_tot >= c.a_max)
-        + (jnp.abs(beta) >= c.beta_max) + (jnp.abs(states[:-1, S.v]) >= c.v_lat_max))
+        (jnp.abs(a_y) >= c.a_roll_mps2).astype(jnp.float32) + (a_tot >= c.a_max_mps2)
+        + (jnp.abs(beta) >= c.beta_max_rad) + (jnp.abs(states[:-1, S.v]) >= c.v_lat_max_mps))
 
     priced = priced_poses(c, states)
     if expected is None:
@@ -307,7 +307,7 @@ def rollout_cost(c: CostParams, states: Any, xdots: Any, goal: Any, m: MapView,
         expected = surface_expectation(c, m, rows, cols, outside, query_var,
                                        ground_now(m, states), key)
     per_step = absorbing_crash(c, expected, query_var)
-    if c.surface_distance > 0.0:
+    if c.surface_distance_m > 0.0:
         # a cell priced per metre crossed: a slower or stopped rollout does not pay again
         # for every tenth of a second it spends on the same cells
         per_step = per_step * per_metre_weight(c, priced[:, S.V])[:, None]
@@ -316,7 +316,7 @@ def rollout_cost(c: CostParams, states: Any, xdots: Any, goal: Any, m: MapView,
     phi = jax.nn.sigmoid(2.0 * (c.activation_distance_m - d0))
     ratio = dn / jnp.maximum(d0, 1e-3)
     s_dist = c.w_dist * (ratio + 2.0 * phi * ratio)
-    s_acc = c.w_acc * V[n] ** 2 * jnp.abs(V[n]) / (2.0 * jnp.maximum(dn, c.acc_distance_floor))
+    s_acc = c.w_acc * V[n] ** 2 * jnp.abs(V[n]) / (2.0 * jnp.maximum(dn, c.acc_distance_floor_m))
     psi_w = jnp.arange(n + 1, dtype=jnp.float32) / n
     s_or = c.w_orientation * phi * jnp.sum(
         jnp.abs(wrap_angle(states[:, S.PSI] - goal[2], jnp)) * psi_w)

@@ -1,11 +1,12 @@
 """MPPI (Williams et al., information-theoretic update) in JAX, pieces kept apart.
 
 One iteration: sample K control sequences around the nominal (sample 0 is the
-nominal itself), roll each out through the plant's own model (`rollout`,
-written for one sample and vmapped), let the controller supply the variance
-each rollout meets (`query_variance`: where VA-MPPI's visibility-aware update
-comes in), price every rollout (`costs.rollout_cost`), weight by
-exp(-(J - J_min) / lambda) and move the nominal by the weighted noise.
+nominal itself), roll each out through the plant's own model (`kernels.rollouts`),
+let the controller supply the variance each rollout meets (`kernels.surface_terms`:
+where VA-MPPI's visibility-aware update comes in), price every rollout
+(`costs.rollout_cost`), weight by exp(-(J - J_min) / lambda) and move the nominal by
+the weighted noise. The kernels' forms (JAX or C++) are services/planner/kernels.py's
+to choose; nothing here knows which runs.
 
     step(params, state, inputs) -> (state, outputs)
 
@@ -16,64 +17,15 @@ iteration, so a run is reproducible from its seed.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from functools import lru_cache, partial
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 
-from common.config import Config, VehicleConfig
-from services.planner import native
-from services.planner.costs import (
-    OFFSETS,
-    CostParams,
-    MapView,
-    footprint_cells,
-    ground_now,
-    priced_poses,
-    rollout_cost,
-)
-from services.planner.fastmath import FAST
-from services.planner.visibility import VisibilityParams, batched_decayed_variance, native_applies
-from services.plant.dynamics import ControlLimits, clamp_control, derivatives, rk4_step
-
-
-@dataclass(frozen=True)
-class PlannerParams:
-    controller: str                    # deterministic | prescient | va
-    samples: int                       # K (J in the paper)
-    horizon: int                       # N
-    dt: float
-    substeps: int
-    iterations: int
-    temperature: float                 # lambda
-    noise_std: tuple[float, float]     # delta, f_xt
-    noise_correlation: float           # rho of the AR(1) noise along the horizon; 0 = white
-    brake_samples: int                 # samples replaced by full braking (0: the paper's MPPI)
-    swerve_samples: int                # ... and by full-lock swerves (0: the paper's MPPI)
-    advance_samples: int               # ... and by the nominal done sooner (0: the paper's)
-    rollouts_published: int
-    rollout_kernel: str                # auto | jax | native (services/planner/native)
-    threads: int                       # native kernels' threads; 0 = this process's cores
-    vehicle: VehicleConfig
-    limits: ControlLimits
-    cost: CostParams
-    visibility: VisibilityParams
-
-    @classmethod
-    def from_config(cls, cfg: Config) -> PlannerParams:
-        p = cfg.planner
-        return cls(p.controller, p.samples, p.horizon, p.dt_s, p.substeps, p.iterations,
-                   p.temperature, (p.noise_steer_rad, p.noise_force_n), p.noise_correlation,
-                   min(p.brake_samples, p.samples - 1),
-                   min(p.swerve_samples, max(0, p.samples - 1 - p.brake_samples)),
-                   min(p.advance_samples,
-                       max(0, p.samples - 1 - p.brake_samples - p.swerve_samples)),
-                   min(p.rollouts_published, p.samples), p.rollout_kernel, p.va_threads,
-                   cfg.vehicle,
-                   ControlLimits.from_config(cfg.vehicle), CostParams.from_config(cfg),
-                   VisibilityParams.from_config(cfg))
+from services.planner.costs import MapView, rollout_cost
+from services.planner.kernels import query_variance, rollouts, surface_terms
+from services.planner.params import PlannerParams
 
 
 class PlannerState(NamedTuple):
@@ -118,81 +70,6 @@ def advance(state: PlannerState, ticks: int) -> PlannerState:
         return state
     ticks = min(ticks, state.nominal.shape[0])
     return state._replace(nominal=_shift(state.nominal, jnp.int32(ticks)))
-
-
-def rollout(params: PlannerParams, x0: jax.Array, u_prev: jax.Array, controls: jax.Array
-            ) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """One sample: states (N+1, 6), applied controls (N, 2), dx/dt at each step (N, 6).
-    The plant's own model, with vectorisable arctan/sin/cos (`fastmath.FAST`)."""
-    def body(carry, v):
-        x, u_last = carry
-        u = clamp_control(v, u_last, params.limits, params.dt, jnp)
-        xdot = derivatives(params.vehicle, x, u, FAST)
-        x_next = jax.lax.fori_loop(0, params.substeps,
-                                   lambda _, x: rk4_step(params.vehicle, x, u, h, FAST), x)
-        return (x_next, u), (x_next, u, xdot)
-
-    # the plant's `integrate`, its substeps as a loop: one copy of the model in the
-    # program instead of `substeps` (compiling took 4 s longer with them unrolled)
-    h = params.dt / params.substeps
-
-    _, (xs, us, xdots) = jax.lax.scan(body, (x0, u_prev), controls)
-    return jnp.concatenate([x0[None], xs]), us, xdots
-
-
-def rollouts(params: PlannerParams, x0: jax.Array, u_prev: jax.Array, controls: jax.Array
-             ) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """`rollout` for K samples, controls (K, N, 2): states (K, N+1, 6), applied (K, N, 2),
-    dx/dt (K, N, 6). On a CPU by default the native kernel (rollout.cc: the same model
-    and arithmetic, W samples per vector instruction), else `rollout` vmapped."""
-    if native.use_native(params.rollout_kernel):
-        return native.rollouts(native.model_vector(params.vehicle, params.limits), x0, u_prev,
-                               controls, dt=params.dt, substeps=params.substeps,
-                               n_threads=native.threads(params.threads))
-    return jax.vmap(rollout, in_axes=(None, None, None, 0))(params, x0, u_prev, controls)
-
-
-def query_variance(params: PlannerParams, m: MapView, states: jax.Array) -> jax.Array:
-    """The variance each rollout meets at its cost's query cells, (K, N+1, 5 P).
-
-    deterministic plans on the mean map and prescient on the true map, both as
-    certain (zero variance); VA-MPPI decays the map variance by what each rollout
-    would have seen before each step (services.planner.visibility).
-    """
-    states = priced_poses(params.cost, states)
-    rows, cols, _ = jax.vmap(footprint_cells, in_axes=(None, None, 0))(params.cost, m, states)
-    if params.controller != "va":
-        return jnp.zeros(rows.shape[:-1] + (len(OFFSETS) * rows.shape[-1],), jnp.float32)
-    return batched_decayed_variance(params.visibility, m.mean, m.variance, m.origin,
-                                    m.resolution, states, rows, cols, OFFSETS)
-
-
-def surface_terms(params: PlannerParams, m: MapView, states: jax.Array
-                  ) -> tuple[jax.Array | None, jax.Array | None]:
-    """The query variance (K, N+1, 5 P) and VA-MPPI's expected surface cost (K, N+1, P)
-    of every rollout, either None. The expected cost comes from the native kernels
-    (closed form, on a CPU: `planner.va_kernel`), fused into the variance update when
-    nothing else needs the variances (`crash_variance` 0), the variance then None;
-    otherwise it is None and `rollout_cost` computes it in JAX (the deterministic and
-    prescient controllers' indicators, the Monte-Carlo estimate, an accelerator)."""
-    c = params.cost
-    if (params.controller != "va" or c.estimator != "closed_form"
-            or not native.use_native(params.visibility.backend)):
-        return query_variance(params, m, states), None
-    h0 = jax.vmap(ground_now, in_axes=(None, 0))(m, states)
-    priced = priced_poses(c, states)
-    rows, cols, outside = jax.vmap(footprint_cells, in_axes=(None, None, 0))(c, m, priced)
-    if c.crash_variance <= 0.0 and native_applies(params.visibility, priced.shape[1]):
-        spec = native.SurfaceSpec(outside, h0, c.grad_threshold, c.step_threshold,
-                                  c.height_threshold, c.n_across)
-        return None, batched_decayed_variance(params.visibility, m.mean, m.variance, m.origin,
-                                              m.resolution, priced, rows, cols, OFFSETS, spec)
-    qvar = query_variance(params, m, states)
-    return qvar, native.expected_surface(m.mean, rows, cols, outside, qvar, h0,
-                                         resolution=m.resolution, grad=c.grad_threshold,
-                                         step=c.step_threshold, height=c.height_threshold,
-                                         n_across=c.n_across,
-                                         n_threads=native.threads(params.threads))
 
 
 def sample_noise(params: PlannerParams, key: jax.Array) -> jax.Array:

@@ -70,13 +70,14 @@ from common.scenarios import Scenario
 from common.topics import topic_key
 from services.planner import mppi
 from services.planner.costs import TERMS
+from services.planner.params import PlannerParams
 
 PENDING = 8                # lockstep: states / maps kept waiting for their partner
 
 
 @dataclass(frozen=True)
 class PlannerProtocolParams:
-    mppi: mppi.PlannerParams
+    mppi: PlannerParams
     goal: np.ndarray                  # (3,) x, y, yaw
     truth: np.ndarray                 # the scenario's heightmap (prescient)
     grid: tuple[int, float, tuple[float, float]]   # cells, resolution, origin
@@ -90,7 +91,7 @@ class PlannerProtocolParams:
 
     @classmethod
     def from_config(cls, cfg: Config, scenario: Scenario) -> PlannerProtocolParams:
-        p = mppi.PlannerParams.from_config(cfg)
+        p = PlannerParams.from_config(cfg)
         g, v, dt = scenario.goal, cfg.vehicle, cfg.planner.dt_s
         return cls(p, np.array([g.x, g.y, g.yaw]), scenario.heightmap,
                    (cfg.mapper.size_cells, cfg.mapper.resolution_m,
@@ -102,7 +103,7 @@ class PlannerProtocolParams:
 
     @property
     def dt(self) -> float:
-        return self.mppi.dt
+        return self.mppi.dt_s
 
 
 @dataclass(frozen=True)

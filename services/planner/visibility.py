@@ -31,7 +31,8 @@ chunk x P x 121 floats: 2.3 MB).
 
 That is the vectorised (`jax`) form, every backend's. On a CPU the same variances
 come by default from a native kernel (services/planner/native, `planner.va_kernel`),
-a rollout at a time per thread, about three times faster there (docs/planner.md).
+a rollout at a time per thread, about three times faster there (docs/planner.md);
+services/planner/kernels.py chooses between the two.
 """
 
 from __future__ import annotations
@@ -44,57 +45,58 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from common.config import Config
+from common.config import Config, by_name
 from services.planner import native
 from services.plant.dynamics import Reaction, S
 
 
 @dataclass(frozen=True)
 class VisibilityParams:
-    rays: int                  # N_theta (Table II): 20
-    points: int                # N_r (Table II): 30
-    ray_min_m: float           # 2 m (text)
-    ray_max_m: float           # 25 m (Table II)
-    fov_rad: float             # 72 degrees (Table II)
-    height_m: float            # threshold visibility height h
+    """Named as their keys of `[planner]` and `[sensor]` (docs/parameters.md), the derived
+    ones commented."""
+    visibility_rays: int       # N_theta (Table II): 20
+    visibility_points: int     # N_r (Table II): 30
+    visibility_min_m: float    # 2 m (text)
+    visibility_max_m: float    # 25 m (Table II)
+    fov_rad: float             # derived: sensor.hfov_deg, 72 degrees (Table II)
+    visibility_height_m: float  # threshold visibility height h
     count_value: float         # c of Eq. count_increase
     splat_size: int            # 9 (text)
     splat_sigma_cells: float   # 1 (text)
-    gamma: float               # 0.3 (Table II)
-    mount_forward_m: float     # rays start at the camera
-    lag_steps: int             # step i meets what poses 0 .. i - lag saw (1: the paper's)
-    reaction: Reaction | None  # points nearer than the distance to react do not count; None = off
-    react_s: float             # the reaction time of that distance (one control tick)
-    react_lateral_m: float     # a swerve's sideways move: the planner's footprint width
-    react_ahead_m: float       # the footprint's front edge ahead of the camera: a point this
-                               # much nearer than the reaction distance is already reached
-    chunk: int                 # trajectories per chunk (memory bound); 0 = auto
-    backend: str               # auto | jax | native (services/planner/native)
-    threads: int               # native kernel threads; 0 = this process's cores
+    decay_gamma: float         # gamma, 0.3 (Table II)
+    mount_forward_m: float     # [sensor]: rays start at the camera
+    visibility_lag_steps: int  # step i meets what poses 0 .. i - lag saw (1: the paper's)
+    reaction: Reaction | None  # derived: points nearer than the distance to react do not
+                               # count; None = off
+    react_s: float             # derived: the reaction time of that distance (one control tick)
+    react_lateral_m: float     # derived: a swerve's sideways move, the footprint's width
+    react_ahead_m: float       # derived: the footprint's front edge ahead of the camera: a
+                               # point this much nearer than the reaction distance is reached
+    va_chunk: int              # trajectories per chunk (memory bound); 0 = auto
+    va_kernel: str             # jax | native: planner.va_kernel resolved (services/planner/
+                               # kernels.py)
+    va_threads: int            # native kernel threads; 0 = this process's cores
 
     @classmethod
     def from_config(cls, cfg: Config) -> VisibilityParams:
         p = cfg.planner
-        return cls(p.visibility_rays, p.visibility_points, p.visibility_min_m,
-                   p.visibility_max_m, math.radians(cfg.sensor.hfov_deg), p.visibility_height_m,
-                   p.count_value, p.splat_size, p.splat_sigma_cells, p.decay_gamma,
-                   cfg.sensor.mount_forward_m, p.visibility_lag_steps,
-                   reaction_of(cfg),
-                   p.dt_s, cfg.vehicle.footprint_width_m + 2 * p.footprint_margin_m,
-                   cfg.vehicle.footprint_length_m / 2 + p.footprint_margin_m
-                   - cfg.sensor.mount_forward_m,
-                   p.va_chunk, p.va_kernel, p.va_threads)
+        return by_name(cls, p, cfg.sensor, fov_rad=math.radians(cfg.sensor.hfov_deg),
+                       va_kernel=native.resolve(p.va_kernel),
+                       reaction=reaction_of(cfg), react_s=p.dt_s,
+                       react_lateral_m=cfg.vehicle.footprint_width_m + 2 * p.footprint_margin_m,
+                       react_ahead_m=cfg.vehicle.footprint_length_m / 2 + p.footprint_margin_m
+                       - cfg.sensor.mount_forward_m)
 
     def ray_grid(self) -> np.ndarray:
         """Body-frame offsets (rays * points, 2) of the ray points from the CG."""
-        ang = np.linspace(-self.fov_rad / 2, self.fov_rad / 2, self.rays)
+        ang = np.linspace(-self.fov_rad / 2, self.fov_rad / 2, self.visibility_rays)
         a, r = np.meshgrid(ang, self.ranges(), indexing="ij")    # (rays, points)
         pts = np.stack([self.mount_forward_m + r * np.cos(a), r * np.sin(a)], axis=-1)
         return pts.reshape(-1, 2)
 
     def ranges(self) -> np.ndarray:
         """Distance (points,) of a ray's points from the camera."""
-        return np.linspace(self.ray_min_m, self.ray_max_m, self.points)
+        return np.linspace(self.visibility_min_m, self.visibility_max_m, self.visibility_points)
 
     def kernel(self) -> np.ndarray:
         """G of Eq. gaussian, (size, size), 1/(2 pi s^2) exp(-(x^2 + y^2) / 2 s^2)."""
@@ -146,12 +148,13 @@ def visible_points(vp: VisibilityParams, mean: Any, origin: Any, resolution: flo
     x, y = states[..., S.X, None], states[..., S.Y, None]
     vr = jnp.clip(jnp.floor((y - origin[1]) / resolution).astype(jnp.int32), 0, h - 1)
     vc = jnp.clip(jnp.floor((x - origin[0]) / resolution).astype(jnp.int32), 0, w - 1)
-    blocker = (elev > jnp.take(flat_mean, vr * w + vc) + vp.height_m) | ~inside
-    blocker = blocker.reshape(blocker.shape[:-1] + (vp.rays, vp.points))
+    blocker = (elev > jnp.take(flat_mean, vr * w + vc) + vp.visibility_height_m) | ~inside
+    blocker = blocker.reshape(blocker.shape[:-1] + (vp.visibility_rays, vp.visibility_points))
     # the first blocker by a min over indices: argmax and cumsum are several times
     # slower on XLA:CPU
-    first = jnp.min(jnp.where(blocker, jnp.arange(vp.points), vp.points), axis=-1)
-    before = (jnp.arange(vp.points) <= first[..., None]).reshape(row.shape)
+    n_r = vp.visibility_points
+    first = jnp.min(jnp.where(blocker, jnp.arange(n_r), n_r), axis=-1)
+    before = (jnp.arange(n_r) <= first[..., None]).reshape(row.shape)
     return row, col, before & inside
 
 
@@ -180,26 +183,27 @@ def offset_kernels(vp: VisibilityParams, offsets: tuple[tuple[int, int], ...]) -
     return out.reshape(size * size, len(offsets))
 
 
-def native_applies(vp: VisibilityParams, t_len: int) -> bool:
-    """Whether `batched_decayed_variance` runs the native kernel for horizons of T = t_len
-    poses (`planner.va_kernel` here, a lag inside the horizon, uint16 counts)."""
-    return (vp.lag_steps < t_len and t_len * vp.rays * vp.points < 2 ** 16
-            and native.use_native(vp.backend))
+def count_inputs(vp: VisibilityParams, offsets: tuple[tuple[int, int], ...], states: Any
+                 ) -> tuple[np.ndarray, int, Any]:
+    """What both forms of the update start from: the splat weights (S * S, len(offsets))
+    times c, the padding of a count map (half the splat plus the offsets' reach) and each
+    pose's uncounted points (K, N+1)."""
+    reach = max(max(abs(a), abs(b)) for a, b in offsets)
+    return (offset_kernels(vp, offsets) * vp.count_value, vp.splat_size // 2 + reach,
+            uncounted_points(vp, states))
 
 
 def batched_decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, origin: Any,
                              resolution: float, states: Any, rows: Any, cols: Any,
-                             offsets: tuple[tuple[int, int], ...],
-                             surface: native.SurfaceSpec | None = None) -> Any:
-    """Variance K trajectories meet at the cells around their footprint points.
+                             offsets: tuple[tuple[int, int], ...]) -> Any:
+    """Variance K trajectories meet at the cells around their footprint points, the JAX
+    form (services/planner/kernels.py chooses between it and va_counts.cc).
 
     states (K, N+1, 6); rows/cols (K, N+1, P) int, the footprint points' cells
     (at least `max|offset|` inside the map); returns (K, N+1, len(offsets) * P),
     offset-major: block k is the cells rows + offsets[k][0], cols + offsets[k][1].
     Step i sees the points of poses 0 .. i-lag only (steps before lag: the prior);
     of each ray, the points before `uncounted_points` block it but do not count.
-    With `surface` (native kernel only: `native_applies`), the expected surface cost
-    (K, N+1, P) computed from those variances instead (native.va_variance).
 
     The visible points of poses 0 .. N-lag are found at once, vectorised over K and
     N. Then raw count maps (visible points per cell, unsplatted; `chunk`
@@ -215,22 +219,11 @@ def batched_decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, ori
     h, w = mean.shape
     k_traj = rows.shape[0]
     reach = max(max(abs(a), abs(b)) for a, b in offsets)
-    pad = vp.splat_size // 2 + reach
+    weights, pad, skip = count_inputs(vp, offsets, states)       # skip: (K, N+1)
     size = 2 * pad + 1                                           # patch side S
     hp, wp = h + 2 * pad, w + 2 * pad
-    weights = offset_kernels(vp, offsets) * vp.count_value
-    lag = vp.lag_steps
+    lag = vp.visibility_lag_steps
     n_steps = rows.shape[1] - 1
-    skip = uncounted_points(vp, states)                          # (K, N+1)
-    # the same in C++ on a CPU (its raw counts are uint16: at most T * rays * points a cell)
-    if native_applies(vp, rows.shape[1]):
-        return native.va_variance(mean, variance, origin, states, skip, rows, cols, offsets,
-                                  vp.ray_grid(), weights, resolution=resolution,
-                                  height=vp.height_m, gamma=vp.gamma, rays=vp.rays,
-                                  points=vp.points, lag=lag, pad=pad,
-                                  n_threads=native.threads(vp.threads), surface=surface)
-    if surface is not None:
-        raise ValueError("the fused surface cost needs the native kernel (native_applies)")
 
     qr = jnp.concatenate([rows + dr for dr, _ in offsets], axis=-1)
     qc = jnp.concatenate([cols + dc for _, dc in offsets], axis=-1)
@@ -246,11 +239,12 @@ def batched_decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, ori
     # poses 0 .. N-lag, read at steps lag .. N
     row, col, vis = visible_points(vp, mean, origin, resolution, states[:, :n_steps - lag + 1])
     if vp.reaction is not None:                                    # nearer points: not counted
-        k_pt = jnp.tile(jnp.arange(vp.points), vp.rays)            # point index along its ray
+        # point index along its ray
+        k_pt = jnp.tile(jnp.arange(vp.visibility_points), vp.visibility_rays)
         vis = vis & (k_pt >= skip[:, :n_steps - lag + 1, None])
     flat = jnp.where(vis, (row + pad) * wp + col + pad, hp * wp)   # unseen: dropped
 
-    chunk = vp.chunk or (8 if jax.default_backend() == "cpu" else 256)
+    chunk = vp.va_chunk or (8 if jax.default_backend() == "cpu" else 256)
     chunk = max(1, min(chunk, k_traj))
     n_chunks = -(-k_traj // chunk)
 
@@ -289,12 +283,4 @@ def batched_decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, ori
     maps = jnp.zeros((chunk, hp * wp), jnp.float32)
     _, c = jax.lax.scan(per_chunk, maps, (split(flat), split(pr), split(pc)))
     c = c.reshape((n_chunks * chunk,) + c.shape[2:])[:k_traj]
-    return prior * jnp.exp(-vp.gamma * c)
-
-
-def decayed_variance(vp: VisibilityParams, mean: Any, variance: Any, origin: Any,
-                     resolution: float, states: Any, rows: Any, cols: Any,
-                     offsets: tuple[tuple[int, int], ...]) -> Any:
-    """`batched_decayed_variance` for one trajectory: states (N+1, 6), rows/cols (N+1, P)."""
-    return batched_decayed_variance(vp, mean, variance, origin, resolution, states[None],
-                                    rows[None], cols[None], offsets)[0]
+    return prior * jnp.exp(-vp.decay_gamma * c)

@@ -15,7 +15,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from common.config import Config, VehicleConfig
+from common.config import Config, VehicleConfig, by_name
 from common.geometry import bilinear, body_to_world, cell_of, footprint_grid
 from common.scenarios import Scenario
 from services.plant.dynamics import ControlLimits, S, clamp_control, integrate
@@ -40,11 +40,12 @@ class PlantParams:
     @classmethod
     def from_config(cls, cfg: Config, scenario: Scenario) -> PlantParams:
         v = cfg.vehicle
-        return cls(v, ControlLimits.from_config(v), 1.0 / cfg.plant.rate_hz,
-                   int(round(cfg.planner.dt_s * cfg.plant.rate_hz)), cfg.planner.dt_s,
-                   cfg.episode.timeout_s, cfg.episode.goal_radius_m, cfg.episode.goal_speed_mps,
-                   scenario, scenario.obstacle_mask(cfg.plant.obstacle_height_m),
-                   footprint_grid(v.footprint_length_m, v.footprint_width_m, 0.1))
+        return by_name(cls, cfg.episode, vehicle=v, limits=ControlLimits.from_config(v),
+                       dt=1.0 / cfg.plant.rate_hz,
+                       steps_per_tick=int(round(cfg.planner.dt_s * cfg.plant.rate_hz)),
+                       tick_s=cfg.planner.dt_s, scenario=scenario,
+                       obstacle_mask=scenario.obstacle_mask(cfg.plant.obstacle_height_m),
+                       footprint=footprint_grid(v.footprint_length_m, v.footprint_width_m, 0.1))
 
 
 @dataclass(frozen=True)

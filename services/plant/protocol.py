@@ -44,7 +44,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from common.config import Config
+from common.config import Config, by_name
 from common.messages import Cmd, Handover, State
 from common.protocol import EPS, NEW, REPEAT, Order, Out, accept, check, on_tick, ref
 from common.supervision import Watch, alive, is_alive, newest, other_world
@@ -72,9 +72,9 @@ class PlantProtocolParams:
     @classmethod
     def from_config(cls, cfg: Config, sim: core.PlantParams) -> PlantProtocolParams:
         pc, vehicle = cfg.plant, cfg.episode.vehicle
-        return cls(sim, cfg.episode.clock, pc.cmd_timeout_s, pc.perception_timeout_s,
-                   pc.reoffer_s, pc.lockstep_wait_s, f"planner/{pc.authority}",
-                   topic_key(vehicle, "cmd"), topic_key(vehicle, "map"))
+        return by_name(cls, pc, sim=sim, mode=cfg.episode.clock,
+                       authority=f"planner/{pc.authority}", cmd_key=topic_key(vehicle, "cmd"),
+                       map_key=topic_key(vehicle, "map"))
 
     @property
     def lockstep(self) -> bool:

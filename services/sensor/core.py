@@ -23,32 +23,32 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from common.config import SensorConfig
+from common.config import SensorConfig, by_name
 from common.geometry import bilinear
 from services.sensor import native
 
 
 @dataclass(frozen=True)
 class CameraParams:
-    width: int
-    height: int
-    fx: float
+    """Named as their keys of `[sensor]` (docs/parameters.md), the derived ones commented."""
+    width_px: int
+    height_px: int
+    fx: float                   # derived: the pinhole focal lengths and centre, pixels
     fy: float
     cx: float
     cy: float
     range_m: float
     mount_height_m: float
     mount_forward_m: float
-    pitch_rad: float
+    pitch_rad: float            # derived: mount_pitch_deg
     march_step_m: float
-    kernel: str = "auto"        # sensor.render_kernel: auto | jax | native
+    render_kernel: str = "auto"  # auto | jax | native
 
     @classmethod
     def from_config(cls, s: SensorConfig) -> CameraParams:
         fx = (s.width_px / 2.0) / math.tan(math.radians(s.hfov_deg) / 2.0)
-        return cls(s.width_px, s.height_px, fx, fx, (s.width_px - 1) / 2.0,
-                   (s.height_px - 1) / 2.0, s.range_m, s.mount_height_m, s.mount_forward_m,
-                   math.radians(s.mount_pitch_deg), s.march_step_m, s.render_kernel)
+        return by_name(cls, s, fx=fx, fy=fx, cx=(s.width_px - 1) / 2.0,
+                       cy=(s.height_px - 1) / 2.0, pitch_rad=math.radians(s.mount_pitch_deg))
 
     @property
     def intrinsics(self) -> np.ndarray:
@@ -72,7 +72,7 @@ def camera_pose(p: CameraParams, x: float, y: float, z: float, yaw: float
 @lru_cache(maxsize=8)
 def ray_directions(p: CameraParams) -> np.ndarray:
     """Unit ray directions in the camera frame, (H, W, 3) float64 (read-only)."""
-    u, v = np.meshgrid(np.arange(p.width), np.arange(p.height), indexing="xy")
+    u, v = np.meshgrid(np.arange(p.width_px), np.arange(p.height_px), indexing="xy")
     d = np.stack([(u - p.cx) / p.fx, (v - p.cy) / p.fy, np.ones_like(u, dtype=float)], axis=-1)
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     d.flags.writeable = False
@@ -136,19 +136,19 @@ def render_depth(p: CameraParams, heightmap: jax.Array, origin: jax.Array, resol
     frac = jnp.clip(g_lo / jnp.maximum(g_lo - g_hi, 1e-12), 0.0, 1.0)
     hit = jnp.where(found, t_lo + frac * (t_hi - t_lo), jnp.nan)
     depth = jnp.where(jnp.isnan(hit), 0.0, hit * dirs_cam[:, 2])
-    return depth.reshape(p.height, p.width).astype(jnp.float32)
+    return depth.reshape(p.height_px, p.width_px).astype(jnp.float32)
 
 
 def render(p: CameraParams, heightmap: np.ndarray, origin: tuple[float, float], resolution: float,
            x: float, y: float, z: float, yaw: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(depth (H, W) float32, cam_position, cam_rotation) for a vehicle pose, by the
-    native ray caster or the JAX form (`p.kernel`)."""
+    native ray caster or the JAX form (`p.render_kernel`)."""
     pos, rot = camera_pose(p, x, y, z, yaw)
-    if native.use_native(p.kernel):
+    if native.use_native(p.render_kernel):
         depth = native.render_depth(heightmap, np.asarray(origin), resolution, pos, rot,
                                     ray_directions(p).reshape(-1, 3), range_m=p.range_m,
                                     step_m=p.march_step_m, refine=REFINE_STEPS)
-        return depth.reshape(p.height, p.width), pos, rot
+        return depth.reshape(p.height_px, p.width_px), pos, rot
     depth = render_depth(p, heightmap, jnp.asarray(origin, jnp.float32), float(resolution),
                          jnp.asarray(pos, jnp.float32), jnp.asarray(rot, jnp.float32))
     return np.asarray(depth), pos, rot

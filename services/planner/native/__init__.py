@@ -5,7 +5,7 @@
   kernel; a CPU backend only) or `auto` (native on a CPU when it builds, else
   jax). Both compute the same variances from the same float32 cells;
   tests/test_visibility.py checks each against the dense float64 reference.
-- rollout.cc, the K rollouts of the prediction model (mppi.rollout vmapped),
+- rollout.cc, the K rollouts of the prediction model (kernels.rollout vmapped),
   chosen the same way by `planner.rollout_kernel`; tests/test_planner.py checks it
   against the JAX form and the plant's float64 model.
 - surface.cc, VA-MPPI's expected surface cost (costs.surface_expectation, closed
@@ -15,8 +15,8 @@
   (`va_surface`), where the variances then never leave a thread's cache; VA-MPPI's
   iteration takes that form unless it needs the variances (`planner.crash_variance`).
 
-The library (common/native.py builds it) is compiled next to its sources; `make` builds
-it at install, and the first use builds it if it is missing.
+The library (common/native.py builds it) is compiled next to its sources by `make`;
+loading never builds it.
 """
 
 from __future__ import annotations
@@ -63,6 +63,12 @@ def use_native(kernel: str) -> bool:
                                     f"this one is {jax.default_backend()}")
         return False
     return common_native.use_native(kernel, _register, _WHAT)
+
+
+def resolve(kernel: str) -> str:
+    """A kernel setting (`auto`, `jax`, `native`) as the form that runs here, `jax` or
+    `native`: decided once, when the parameters are built (services/planner/kernels.py)."""
+    return "native" if use_native(kernel) else "jax"
 
 
 def threads(requested: int) -> int:
@@ -142,25 +148,46 @@ def expected_surface(mean: Any, rows: Any, cols: Any, outside: Any, variance: An
                 **_surface_attrs(resolution, grad, step, n_across))
 
 
-# rollout.cc's `Model`, in its order: the vehicle's fields, then the control limits
-MODEL_FIELDS = ("mass_kg", "lf_m", "lr_m", "track_m", "pacejka_b", "pacejka_c", "pacejka_d",
-                "pacejka_e", "drag_coefficient", "frontal_area_m2", "air_density",
-                "rolling_coefficient", "gravity", "cg_height_m", "yaw_inertia_kgm2",
-                "kinematic_below_mps", "dynamic_above_mps", "kinematic_tau_s",
-                "slip_speed_floor_mps", "brake_speed_eps_mps")
+# rollout.cc's `enum Model`, entry by entry: its name there and what it holds, a field of
+# the VehicleConfig or of the ControlLimits (`lo.0`: lo[0], delta; `.1`: f_xt). The one
+# statement of the order: `model_enum` reads the C++ side's, and tests/test_planner.py
+# checks the two name for name.
+MODEL = (("kMass", "mass_kg"), ("kLf", "lf_m"), ("kLr", "lr_m"), ("kTrack", "track_m"),
+         ("kB", "pacejka_b"), ("kC", "pacejka_c"), ("kD", "pacejka_d"), ("kE", "pacejka_e"),
+         ("kCd", "drag_coefficient"), ("kAf", "frontal_area_m2"), ("kRho", "air_density"),
+         ("kCr", "rolling_coefficient"), ("kG", "gravity"), ("kCgHeight", "cg_height_m"),
+         ("kIz", "yaw_inertia_kgm2"), ("kKinBelow", "kinematic_below_mps"),
+         ("kDynAbove", "dynamic_above_mps"), ("kTau", "kinematic_tau_s"),
+         ("kSlipFloor", "slip_speed_floor_mps"), ("kBrakeEps", "brake_speed_eps_mps"),
+         ("kSteerLo", "lo.0"), ("kForceLo", "lo.1"), ("kSteerHi", "hi.0"),
+         ("kForceHi", "hi.1"), ("kSteerRate", "rate.0"), ("kForceRate", "rate.1"))
+
+
+def model_enum(source: Path | None = None) -> list[str]:
+    """The entries of rollout.cc's `enum Model`, in order, its closing kModelSize left out."""
+    import re
+    text = (source or Path(__file__).with_name("rollout.cc")).read_text()
+    body = re.search(r"enum Model \{(.*?)\};", text, re.S)
+    if body is None:
+        raise ValueError("rollout.cc has no `enum Model { ... };`")
+    names = [n.strip() for n in body[1].split(",") if n.strip()]
+    if names[-1] != "kModelSize":
+        raise ValueError("rollout.cc's enum Model does not end with kModelSize")
+    return names[:-1]
 
 
 def model_vector(vehicle: Any, limits: Any) -> np.ndarray:
-    """The (26,) float32 parameters rollout.cc reads: MODEL_FIELDS of the VehicleConfig,
-    then the ControlLimits lo, hi and rate (delta, f_xt each)."""
-    return np.asarray([getattr(vehicle, f) for f in MODEL_FIELDS]
-                      + [*limits.lo, *limits.hi, *limits.rate], np.float32)
+    """The (26,) float32 parameters rollout.cc reads, in MODEL's order."""
+    def value(what: str) -> float:
+        name, _, i = what.partition(".")
+        return getattr(limits, name)[int(i)] if i else getattr(vehicle, name)
+    return np.asarray([value(what) for _, what in MODEL], np.float32)
 
 
 def rollouts(model: np.ndarray, x0: Any, u_prev: Any, controls: Any, *, dt: float,
              substeps: int, n_threads: int) -> tuple[Any, Any, Any]:
     """K rollouts of the prediction model (rollout.cc): controls (K, N, 2) -> states
-    (K, N+1, 6), applied controls (K, N, 2), dx/dt (K, N, 6), as mppi.rollout vmapped."""
+    (K, N+1, 6), applied controls (K, N, 2), dx/dt (K, N, 6), as kernels.rollout vmapped."""
     k, n, _ = controls.shape
     out = (jax.ShapeDtypeStruct((k, n + 1, 6), jnp.float32),
            jax.ShapeDtypeStruct((k, n, 2), jnp.float32),

@@ -10,7 +10,7 @@
 // probabilities P(|X| > threshold); 5 where the point is off the map. The same arithmetic
 // as the JAX form, with erfc from Abramowitz & Stegun 7.1.26 (absolute error below
 // 1.5e-7) instead of XLA's erf: XLA:CPU took about 10 ms for the ten erf a footprint
-// point needs at K = 800, one core (docs/benchmarks.md, session 17).
+// point needs at K = 800, one core.
 #pragma once
 
 #include <algorithm>

@@ -201,10 +201,10 @@ struct Walks {
 // Adds pose `s`'s visible ray points that lie in `box` to the raw count map (padded). Every
 // ray's cells are computed first (vector code, one ray after another), then each ray is
 // walked to its first blocker or its last point that could count, whichever comes first.
-// (Until session 29 a point counted where its 8 x 8-cell block lay under a patch, looked up
+// (A point used to count where its 8 x 8-cell block lay under a patch, looked up
 // by a vector gather; the box test is a comparison, and the outputs are the same bit for
 // bit: 13-17 % less time for the whole iteration at K = 800 on an AMD Zen 5, where that
-// gather was a fifth of this function; docs/benchmarks.md.)
+// gather was a fifth of this function.)
 __attribute__((target("prefer-vector-width=512")))
 void add_visible(const Problem& p, const float* s, int32_t skip, const Box& box, Walks& ws,
                  uint16_t* map) {
