@@ -28,7 +28,8 @@ log = logging.getLogger(__name__)
 CONTROLLER_COLORS = {"deterministic": "tab:red", "prescient": "tab:green", "va": "tab:blue"}
 
 
-def _save(fig, path: Path, dpi: int = 120, tight: bool = True) -> Path:
+def save_figure(fig, path: Path, dpi: int = 120, tight: bool = True) -> Path:
+    """Write `fig` to `path` (laid out tight unless not `tight`) and close it."""
     if tight:
         fig.tight_layout()
     fig.savefig(path, dpi=dpi)
@@ -58,7 +59,7 @@ def plot_failures(summary: list[dict[str, Any]], out: Path) -> Path:
         ax.set_ylim(0, 100)
         ax.set_title(scenario)
         ax.legend(fontsize=8)
-    return _save(fig, out / "failures.png")
+    return save_figure(fig, out / "failures.png")
 
 
 def plot_time_to_goal(runs: list[dict[str, Any]], out: Path) -> Path:
@@ -76,7 +77,7 @@ def plot_time_to_goal(runs: list[dict[str, Any]], out: Path) -> Path:
         ax.set_xticks(np.arange(1, len(labels) + 1), labels, fontsize=8)
         ax.set_ylabel("time to goal, s (successful runs)")
         ax.set_title(scenario)
-    return _save(fig, out / "time_to_goal.png")
+    return save_figure(fig, out / "time_to_goal.png")
 
 
 def _scenario_background(ax, cfg: Config, scenario: str) -> None:
@@ -113,7 +114,7 @@ def plot_scenario(cfg: Config, scenario: str, path: Path) -> Path:
     ax.set_xlabel("x, m")
     ax.set_ylabel("y, m")
     ax.legend(fontsize=8, loc="lower right")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_trajectories(cfg: Config, runs: list[dict[str, Any]], scenario: str, out: Path
@@ -138,7 +139,7 @@ def plot_trajectories(cfg: Config, runs: list[dict[str, Any]], scenario: str, ou
         ax.set_ylabel("y, m")
     if line is not None:
         fig.colorbar(line, ax=axes[0].tolist(), label="speed, m/s")
-    return _save(fig, out / f"trajectories_{label(scenario)}.png", tight=False)
+    return save_figure(fig, out / f"trajectories_{label(scenario)}.png", tight=False)
 
 
 def plot_solve_time(runs: list[dict[str, Any]], out: Path) -> Path:
@@ -153,7 +154,7 @@ def plot_solve_time(runs: list[dict[str, Any]], out: Path) -> Path:
     ax.set_xlabel("solve time per control tick, ms (first tick, with compilation, excluded)")
     ax.set_ylabel("ticks")
     ax.legend(fontsize=8)
-    return _save(fig, out / "solve_time.png")
+    return save_figure(fig, out / "solve_time.png")
 
 
 def plot_visibility(cfg: Config, scenario: str, samples: int, seed: int, out: Path) -> Path:
@@ -177,7 +178,7 @@ def plot_visibility(cfg: Config, scenario: str, samples: int, seed: int, out: Pa
             ax.set_title(f"{title}, t = {s['t']:.1f} s, surface cost {s['terms'][2]:.0f}, "
                          f"f_xt {s['controls'][0][1]:.0f} N", fontsize=8)
     fig.suptitle(f"{scenario}, VA-MPPI K={samples}: {result.outcome}")
-    return _save(fig, out / f"visibility_{label(scenario)}.png", dpi=110)
+    return save_figure(fig, out / f"visibility_{label(scenario)}.png", dpi=110)
 
 
 PER_SCENARIO_PLOTS = 6       # trajectories and visibility pictures only for this few scenarios

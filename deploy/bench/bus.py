@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from common.config import Config
-from deploy.bench.device import device_info, heading
+from deploy.bench.device import device_info, heading, markdown_table
 from deploy.recording.timing import ChainLog, stats_ms
 
 
@@ -354,68 +354,60 @@ def bench_record(cfg: Config, duration_s: float, rates: list[float],
 
 def bus_table(result: dict[str, Any]) -> str:
     """`vamppi bench bus`'s result as a markdown table."""
-    head = heading(result)
-    lines = [head, "", "| payload | bytes | latency p50 ms | p99 ms | p50 over raw | msgs/s "
-             "| MB/s |", "|---|---|---|---|---|---|---|"]
-    for c in result["cases"]:
-        lines.append(f"| {c['payload']} | {c['bytes']} | {c['median_ms']:.2f} | {c['p99_ms']:.2f} "
-                     f"| {100 * c['over_raw_p50']:+.0f} % | {c['msgs_per_s']:.0f} "
-                     f"| {c['mb_per_s']:.0f} |")
     alone = result["codec_alone"]
-    lines += ["", "codec alone, one thread, no bus: encode "
-              f"{1e3 * alone['encode']['median_ms']:.0f} us, decode "
-              f"{1e3 * alone['decode']['median_ms']:.0f} us (medians)"]
-    return "\n".join(lines)
+    return markdown_table(
+        heading(result), ["payload", "bytes", "latency p50 ms", "p99 ms", "p50 over raw",
+                          "msgs/s", "MB/s"],
+        [[c["payload"], c["bytes"], f"{c['median_ms']:.2f}", f"{c['p99_ms']:.2f}",
+          f"{100 * c['over_raw_p50']:+.0f} %", f"{c['msgs_per_s']:.0f}", f"{c['mb_per_s']:.0f}"]
+         for c in result["cases"]]) + (
+        "\n\ncodec alone, one thread, no bus: encode "
+        f"{1e3 * alone['encode']['median_ms']:.0f} us, decode "
+        f"{1e3 * alone['decode']['median_ms']:.0f} us (medians)")
 
 
 def pipeline_table(result: dict[str, Any]) -> str:
     """`vamppi bench pipeline`'s result as a markdown table."""
-    head = heading(result)
-    lines = [head, "", "| controller | K | commands/s | interval p95 ms | end-to-end p50 ms "
-             "| p95 ms | depth->map p50 | map->cmd p50 | cmd->applied p50 | stale steps "
-             "| outcome |", "|---|---|---|---|---|---|---|---|---|---|---|"]
-    for c in result["cases"]:
+    nan = float("nan")
+
+    def row(c: dict[str, Any]) -> list[Any]:
         e = c.get("end_to_end", {})
-        stage = [c.get(s, {}).get("median_ms", float("nan"))
+        stage = [c.get(s, {}).get("median_ms", nan)
                  for s in ("depth_to_map", "map_to_cmd", "cmd_to_applied")]
-        lines.append(f"| {c['controller']} | {c['samples']} "
-                     f"| {c.get('command_rate_hz', 0):.1f} "
-                     f"| {c.get('command_interval', {}).get('p95_ms', float('nan')):.0f} "
-                     f"| {e.get('median_ms', float('nan')):.0f} "
-                     f"| {e.get('p95_ms', float('nan')):.0f} "
-                     + "".join(f"| {x:.0f} " for x in stage)
-                     + f"| {c['stale_states']} / {c['states']} | {c['outcome']} |")
-    return "\n".join(lines)
+        return [c["controller"], c["samples"], f"{c.get('command_rate_hz', 0):.1f}",
+                f"{c.get('command_interval', {}).get('p95_ms', nan):.0f}",
+                f"{e.get('median_ms', nan):.0f}", f"{e.get('p95_ms', nan):.0f}",
+                *(f"{x:.0f}" for x in stage), f"{c['stale_states']} / {c['states']}",
+                c["outcome"]]
+    return markdown_table(
+        heading(result), ["controller", "K", "commands/s", "interval p95 ms",
+                          "end-to-end p50 ms", "p95 ms", "depth->map p50", "map->cmd p50",
+                          "cmd->applied p50", "stale steps", "outcome"],
+        [row(c) for c in result["cases"]])
 
 
 def security_table(result: dict[str, Any]) -> str:
     """`vamppi bench security`'s result as a markdown table."""
-    head = heading(result)
     st = result["settings"]
-    lines = [f"{head}; realtime, {st['controller']} K = {st['samples']}, "
-             f"{st['scenario']}, {st['reps']} interleaved runs each (medians)", "",
-             "| bus | map p50 ms | map p99 ms | commands/s | end-to-end p50 ms "
-             "| stale states | flood puts | map p50 / tcp | map p99 / tcp |",
-             "|---|---|---|---|---|---|---|---|---|"]
-    for c in result["cases"]:
-        lines.append(f"| {c['case']} | {c['map_p50_ms']} | {c['map_p99_ms']} "
-                     f"| {c['command_rate_hz']} | {c['end_to_end_p50_ms']} "
-                     f"| {c['stale_states']:g} | {c['flood_sent']:g} "
-                     f"| {c.get('map_p50_over_tcp', 1.0)} | {c.get('map_p99_over_tcp', 1.0)} |")
-    return "\n".join(lines)
+    return markdown_table(
+        f"{heading(result)}; realtime, {st['controller']} K = {st['samples']}, "
+        f"{st['scenario']}, {st['reps']} interleaved runs each (medians)",
+        ["bus", "map p50 ms", "map p99 ms", "commands/s", "end-to-end p50 ms", "stale states",
+         "flood puts", "map p50 / tcp", "map p99 / tcp"],
+        [[c["case"], c["map_p50_ms"], c["map_p99_ms"], c["command_rate_hz"],
+          c["end_to_end_p50_ms"], f"{c['stale_states']:g}", f"{c['flood_sent']:g}",
+          c.get("map_p50_over_tcp", 1.0), c.get("map_p99_over_tcp", 1.0)]
+         for c in result["cases"]])
 
 
 def record_table(result: dict[str, Any]) -> str:
     """`vamppi bench record`'s result as a markdown table."""
-    head = heading(result)
     st = result["settings"]
-    lines = [f"{head}; {st['seconds']} s of traffic: states {st['state_hz']} Hz, depth, "
-             f"maps and commands {st['map_hz']} Hz ({st['messages']} messages)", "",
-             "| time scale | published | recorded | seq gaps | max backlog | wall s "
-             "| MB/s | file MB (of payload MB) |", "|---|---|---|---|---|---|---|---|"]
-    for c in result["cases"]:
-        lines.append(f"| {c['rate'] or 'as fast as possible'} | {c['published']} | "
-                     f"{c['recorded']} | {c['seq_missing']} | {c['max_backlog']} | "
-                     f"{c['wall_s']} | {c['mb_per_s']} | {c['file_mb']} "
-                     f"({c['payload_mb']}) |")
-    return "\n".join(lines)
+    return markdown_table(
+        f"{heading(result)}; {st['seconds']} s of traffic: states {st['state_hz']} Hz, "
+        f"depth, maps and commands {st['map_hz']} Hz ({st['messages']} messages)",
+        ["time scale", "published", "recorded", "seq gaps", "max backlog", "wall s", "MB/s",
+         "file MB (of payload MB)"],
+        [[c["rate"] or "as fast as possible", c["published"], c["recorded"], c["seq_missing"],
+          c["max_backlog"], c["wall_s"], c["mb_per_s"], f"{c['file_mb']} ({c['payload_mb']})"]
+         for c in result["cases"]])

@@ -28,3 +28,10 @@ def device_info() -> dict[str, Any]:
 def heading(result: dict[str, Any]) -> str:
     """A benchmark table's first line: what ran it."""
     return f"{result['benchmark']}: {result['device']} ({result['backend']}, jax {result['jax']})"
+
+
+def markdown_table(title: str, columns: list[str], rows: list[list[Any]]) -> str:
+    """`title`, a blank line, then a markdown table of `rows` (each cell as str() gives it)."""
+    lines = [title, "", "| " + " | ".join(columns) + " |", "|---" * len(columns) + "|"]
+    lines += ["| " + " | ".join(str(x) for x in row) + " |" for row in rows]
+    return "\n".join(lines)

@@ -27,7 +27,7 @@ import numpy as np
 
 from common.config import Config
 from common.scenarios import scenario_of
-from deploy.bench.device import device_info, heading
+from deploy.bench.device import device_info, heading, markdown_table
 from deploy.recording.timing import stats_ms
 from services.planner import mppi, native
 from services.planner.params import PlannerParams
@@ -109,19 +109,20 @@ def bench_planner(cfg: Config, samples: list[int], controllers: list[str], reps:
 
 
 def planner_table(result: dict[str, Any]) -> str:
+    """`vamppi bench planner`'s result as a markdown table."""
     rows = result["cases"]
     det = {r["samples"]: r["median_ms"] for r in rows if r["controller"] == "deterministic"}
-    lines = [f"planner, one iteration: {result['device']} ({result['backend']}, "
-             f"jax {result['jax']})", "",
-             "| controller | K | median ms | p95 ms | min ms | va / det | compile s | memory MB |",
-             "|---|---|---|---|---|---|---|---|"]
-    for r in rows:
-        ratio = (f"{r['median_ms'] / det[r['samples']]:.2f}"
-                 if r["controller"] == "va" and r["samples"] in det else "")
-        lines.append(f"| {r['controller']} | {r['samples']} | {r['median_ms']:.1f} "
-                     f"| {r['p95_ms']:.1f} | {r['min_ms']:.1f} | {ratio} | {r['compile_s']:.1f} "
-                     f"| {r['peak_mem_mb']:.0f} |")
-    return "\n".join(lines)
+
+    def ratio(r: dict[str, Any]) -> str:
+        return (f"{r['median_ms'] / det[r['samples']]:.2f}"
+                if r["controller"] == "va" and r["samples"] in det else "")
+    return markdown_table(
+        f"planner, one iteration: {result['device']} ({result['backend']}, jax {result['jax']})",
+        ["controller", "K", "median ms", "p95 ms", "min ms", "va / det", "compile s",
+         "memory MB"],
+        [[r["controller"], r["samples"], f"{r['median_ms']:.1f}", f"{r['p95_ms']:.1f}",
+          f"{r['min_ms']:.1f}", ratio(r), f"{r['compile_s']:.1f}", f"{r['peak_mem_mb']:.0f}"]
+         for r in rows])
 
 
 def bench_mapper(cfg: Config, reps: int, sizes: tuple[tuple[int, int], ...] = ((0, 0), (320, 240))
@@ -173,12 +174,10 @@ def bench_mapper(cfg: Config, reps: int, sizes: tuple[tuple[int, int], ...] = ((
 
 def mapper_table(result: dict[str, Any]) -> str:
     """`vamppi bench mapper`'s result as a markdown table."""
-    head = heading(result)
-    lines = [head, "", "| camera | fuse ms | inpaint ms | encode ms | total median ms "
-             "| total p95 ms | compile s |", "|---|---|---|---|---|---|---|"]
-    for c in result["cases"]:
-        lines.append(f"| {c['width']} x {c['height']} | {c['fuse']['median_ms']:.1f} "
-                     f"| {c['inpaint']['median_ms']:.1f} | {c['encode']['median_ms']:.1f} "
-                     f"| {c['total']['median_ms']:.1f} | {c['total']['p95_ms']:.1f} "
-                     f"| {c['compile_s']:.1f} |")
-    return "\n".join(lines)
+    return markdown_table(
+        heading(result), ["camera", "fuse ms", "inpaint ms", "encode ms", "total median ms",
+                          "total p95 ms", "compile s"],
+        [[f"{c['width']} x {c['height']}", f"{c['fuse']['median_ms']:.1f}",
+          f"{c['inpaint']['median_ms']:.1f}", f"{c['encode']['median_ms']:.1f}",
+          f"{c['total']['median_ms']:.1f}", f"{c['total']['p95_ms']:.1f}",
+          f"{c['compile_s']:.1f}"] for c in result["cases"]])

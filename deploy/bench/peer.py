@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from common.config import Config
-from deploy.bench.device import device_info, heading
+from deploy.bench.device import device_info, heading, markdown_table
 from deploy.bench.kernels import planner_case, planner_inputs
 from services.planner import kernels
 from services.planner.costs import (
@@ -225,14 +225,11 @@ def bench_peer(cfg: Config, samples: list[int], reps: int) -> dict[str, Any]:
             "cases": cases}
 def peer_table(result: dict[str, Any]) -> str:
     """`vamppi bench peer`'s result as a markdown table."""
-    head = heading(result)
     ours = {c["samples"]: c["median_ms"] for c in result["cases"]
             if c["implementation"] == "vamppi"}
-    lines = [f"{head}; torch {result['torch']} on {result['torch_device']} "
-             f"({result['torch_threads']} threads), pytorch_mppi {result['pytorch_mppi']}",
-             "", "| implementation | K | median ms | p95 ms | time / ours |",
-             "|---|---|---|---|---|"]
-    for c in result["cases"]:
-        lines.append(f"| {c['implementation']} | {c['samples']} | {c['median_ms']:.1f} "
-                     f"| {c['p95_ms']:.1f} | {c['median_ms'] / ours[c['samples']]:.2f} |")
-    return "\n".join(lines)
+    return markdown_table(
+        f"{heading(result)}; torch {result['torch']} on {result['torch_device']} "
+        f"({result['torch_threads']} threads), pytorch_mppi {result['pytorch_mppi']}",
+        ["implementation", "K", "median ms", "p95 ms", "time / ours"],
+        [[c["implementation"], c["samples"], f"{c['median_ms']:.1f}", f"{c['p95_ms']:.1f}",
+          f"{c['median_ms'] / ours[c['samples']]:.2f}"] for c in result["cases"]])

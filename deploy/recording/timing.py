@@ -284,6 +284,8 @@ def plots(result: dict[str, Any], out_dir: str | Path) -> list[Path]:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    from deploy.analysis.plots import save_figure
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     s = result["_series"]
@@ -294,10 +296,7 @@ def plots(result: dict[str, Any], out_dir: str | Path) -> list[Path]:
         ax.set_xlabel("planner solve time (ms)")
         ax.set_ylabel("ticks")
         ax.set_title("solve-time distribution")
-        written.append(out / "solve_time.png")
-        fig.tight_layout()
-        fig.savefig(written[-1], dpi=120)
-        plt.close(fig)
+        written.append(save_figure(fig, out / "solve_time.png"))
     if s["chains"]:
         a = np.asarray(s["chains"]) * 1e3
         fig, ax = plt.subplots(figsize=(6, 3.5))
@@ -307,10 +306,7 @@ def plots(result: dict[str, Any], out_dir: str | Path) -> list[Path]:
         ax.set_xticks(range(1, len(stages) + 1), list(stages))
         ax.set_ylabel("ms")
         ax.set_title("chain latency, depth capture to command applied")
-        written.append(out / "chain_latency.png")
-        fig.tight_layout()
-        fig.savefig(written[-1], dpi=120)
-        plt.close(fig)
+        written.append(save_figure(fig, out / "chain_latency.png"))
     keys = sorted(k for k, v in s["latency"].items() if v)
     if keys:
         fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
@@ -333,10 +329,7 @@ def plots(result: dict[str, Any], out_dir: str | Path) -> list[Path]:
         axes[1].set_yscale("log")
         for ax in axes:
             ax.legend(fontsize=7)
-        written.append(out / "topics.png")
-        fig.tight_layout()
-        fig.savefig(written[-1], dpi=120)
-        plt.close(fig)
+        written.append(save_figure(fig, out / "topics.png"))
     return written
 
 
