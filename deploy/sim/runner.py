@@ -50,12 +50,12 @@ class Cores:
     @classmethod
     def from_config(cls, cfg: Config) -> Cores:
         scn = scenario_of(cfg)
-        return cls(cfg, scn,
-                   plant.PlantProtocolParams.from_config(
+        return cls(cfg=cfg, scenario=scn,
+                   plant=plant.PlantProtocolParams.from_config(
                        cfg, plant_core.PlantParams.from_config(cfg, scn)),
-                   sensor.SensorParams.from_config(cfg, scn),
-                   mapper.MapperProtocolParams.from_config(cfg, scn.origin),
-                   planner.PlannerProtocolParams.from_config(cfg, scn))
+                   sensor=sensor.SensorParams.from_config(cfg, scn),
+                   mapper=mapper.MapperProtocolParams.from_config(cfg, scn.origin),
+                   planner=planner.PlannerProtocolParams.from_config(cfg, scn))
 
     @property
     def goal(self) -> np.ndarray:

@@ -52,10 +52,12 @@ class MapperProtocolParams:
     @classmethod
     def from_config(cls, cfg: Config, origin: tuple[float, float]) -> MapperProtocolParams:
         cam = CameraParams.from_config(cfg.sensor)
-        return cls(core.MapperParams.from_config(cfg, origin), cfg.episode.clock == "lockstep",
-                   max(cfg.planner.dt_s, 1.0 / cfg.sensor.rate_hz), (cam.height_px, cam.width_px),
-                   tuple(float(v) for v in cam.intrinsics), cam.range_m,
-                   topic_key(cfg.episode.vehicle, "depth"))
+        return cls(core=core.MapperParams.from_config(cfg, origin),
+                   lockstep=cfg.episode.clock == "lockstep",
+                   ahead_s=max(cfg.planner.dt_s, 1.0 / cfg.sensor.rate_hz),
+                   image_shape=(cam.height_px, cam.width_px),
+                   intrinsics=tuple(float(v) for v in cam.intrinsics), range_m=cam.range_m,
+                   depth_key=topic_key(cfg.episode.vehicle, "depth"))
 
 
 @dataclass(frozen=True)

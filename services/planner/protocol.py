@@ -93,13 +93,14 @@ class PlannerProtocolParams:
     def from_config(cls, cfg: Config, scenario: Scenario) -> PlannerProtocolParams:
         p = PlannerParams.from_config(cfg)
         g, v, dt = scenario.goal, cfg.vehicle, cfg.planner.dt_s
-        return cls(p, np.array([g.x, g.y, g.yaw]), scenario.heightmap,
-                   (cfg.mapper.size_cells, cfg.mapper.resolution_m,
-                    (float(scenario.origin[0]), float(scenario.origin[1]))),
-                   cfg.episode.clock == "lockstep", 1.0 / cfg.plant.rate_hz, dt,
-                   max(dt, 1.0 / cfg.sensor.rate_hz),
-                   (v.steer_rate_max_radps * dt, v.force_rate_max_nps * dt),
-                   topic_key(cfg.episode.vehicle, "state"), topic_key(cfg.episode.vehicle, "map"))
+        return cls(mppi=p, goal=np.array([g.x, g.y, g.yaw]), truth=scenario.heightmap,
+                   grid=(cfg.mapper.size_cells, cfg.mapper.resolution_m,
+                         (float(scenario.origin[0]), float(scenario.origin[1]))),
+                   lockstep=cfg.episode.clock == "lockstep", plant_dt=1.0 / cfg.plant.rate_hz,
+                   state_ahead_s=dt, map_ahead_s=max(dt, 1.0 / cfg.sensor.rate_hz),
+                   follow_tol=(v.steer_rate_max_radps * dt, v.force_rate_max_nps * dt),
+                   state_key=topic_key(cfg.episode.vehicle, "state"),
+                   map_key=topic_key(cfg.episode.vehicle, "map"))
 
     @property
     def dt(self) -> float:

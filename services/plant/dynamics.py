@@ -54,8 +54,8 @@ class ControlLimits:
 
     @classmethod
     def from_config(cls, v: VehicleConfig) -> ControlLimits:
-        return cls((-v.steer_max_rad, v.force_min_n), (v.steer_max_rad, v.force_max_n),
-                   (v.steer_rate_max_radps, v.force_rate_max_nps))
+        return cls(lo=(-v.steer_max_rad, v.force_min_n), hi=(v.steer_max_rad, v.force_max_n),
+                   rate=(v.steer_rate_max_radps, v.force_rate_max_nps))
 
 
 @dataclass(frozen=True)
@@ -75,13 +75,15 @@ class Reaction:
     @classmethod
     def braking_only(cls, decel_mps2: float) -> Reaction:
         """Stopping at a given deceleration, at once (no ramp), no swerve."""
-        return cls(decel_mps2, 0.0, 0.0, 1.0, 0.0, 1.0)
+        return cls(decel_mps2=decel_mps2, ramp_s=0.0, lateral_accel_mps2=0.0, wheelbase_m=1.0,
+                   steer_max_rad=0.0, steer_rate_radps=1.0)
 
     @classmethod
     def from_config(cls, v: VehicleConfig) -> Reaction:
-        return cls(-v.force_min_n / v.mass_kg, -v.force_min_n / v.force_rate_max_nps,
-                   v.pacejka_d * v.gravity, v.lf_m + v.lr_m, v.steer_max_rad,
-                   v.steer_rate_max_radps)
+        return cls(decel_mps2=-v.force_min_n / v.mass_kg,
+                   ramp_s=-v.force_min_n / v.force_rate_max_nps,
+                   lateral_accel_mps2=v.pacejka_d * v.gravity, wheelbase_m=v.lf_m + v.lr_m,
+                   steer_max_rad=v.steer_max_rad, steer_rate_radps=v.steer_rate_max_radps)
 
     def stopping(self, v: Any, react_s: float, xp: Any = np) -> Any:
         """Travel from speed `v` (arrays ok) to standing still on flat ground: `react_s` at

@@ -51,9 +51,10 @@ class SensorParams:
 
     @classmethod
     def from_config(cls, cfg: Config, scenario: Scenario) -> SensorParams:
-        return cls(core.CameraParams.from_config(cfg.sensor), scenario, 1.0 / cfg.sensor.rate_hz,
-                   cfg.planner.dt_s, cfg.episode.clock == "lockstep", cfg.planner.dt_s,
-                   topic_key(cfg.episode.vehicle, "state"))
+        return cls(camera=core.CameraParams.from_config(cfg.sensor), scenario=scenario,
+                   period_s=1.0 / cfg.sensor.rate_hz, tick_s=cfg.planner.dt_s,
+                   lockstep=cfg.episode.clock == "lockstep", ahead_s=cfg.planner.dt_s,
+                   state_key=topic_key(cfg.episode.vehicle, "state"))
 
 
 @dataclass(frozen=True)
