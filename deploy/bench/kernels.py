@@ -102,9 +102,8 @@ def bench_planner(cfg: Config, samples: list[int], controllers: list[str], reps:
             "settings": {"horizon": p.horizon, "iterations": 1, "map_cells": list(inputs[3].shape),
                          "rays": p.visibility_rays, "points": p.visibility_points,
                          "surface_estimator": p.surface_estimator, "reps": reps,
-                         "va_kernel": "native" if native.use_native(p.va_kernel) else "jax",
-                         "rollout_kernel": "native" if native.use_native(p.rollout_kernel)
-                         else "jax"},
+                         "va_kernel": native.resolve(p.va_kernel),
+                         "rollout_kernel": native.resolve(p.rollout_kernel)},
             "cases": [c.row() for c in cases]}
 
 
