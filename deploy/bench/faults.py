@@ -483,7 +483,11 @@ class Up:
     def finish(self, timeout: float = 600.0) -> dict[str, Any]:
         out, _ = self.p.communicate(timeout=timeout)
         self._t.join(5)
-        return json.loads(out.strip().splitlines()[-1])
+        lines = out.strip().splitlines()
+        if not lines:
+            raise AssertionError(f"vamppi up exited {self.p.returncode} with no summary:\n"
+                                 + self.stderr()[-4000:])
+        return json.loads(lines[-1])
 
     def stderr(self) -> str:
         return "\n".join(line for _, line in self.lines)
