@@ -37,6 +37,7 @@ INPUTS: dict[str, tuple[str, ...]] = {"plant": ("cmd", "handover"), "sensor": ("
                                       "mapper": ("depth",),
                                       "planner": ("state", "map", "cmd", "handover")}
 HEARTBEAT = "heartbeat"
+REPLAY_SOURCE = "replay"     # `vamppi replay` beats as this service (heartbeat_key)
 # topics whose publisher keeps what it sent for `RECOVERY_S` (zenoh-ext advanced publishers):
 # a subscriber that missed samples of them (a cut link) fetches them late
 CACHED: dict[str, str] = {"state": "plant", "clock": "plant", "events": "plant"}

@@ -4,6 +4,7 @@
     vamppi service NAME [--connect tcp/HOST:PORT] [--listen EP] [--mode peer|client|router]
     vamppi router --listen tcp/0.0.0.0:7447     a standalone router
     vamppi health --connect tcp/HOST:7447       live instances and their counters
+    vamppi view [--connect tcp/HOST:7447]       the bus live in Foxglove (ws://localhost:8765)
     vamppi run ...           one episode in this process, no bus (the lockstep reference)
     vamppi experiment --scenario alleyway,offroad --controllers va,deterministic,prescient \\
         --samples 400,1000,4000 --runs 100 --seed 0 --out DIR
@@ -11,12 +12,14 @@
     vamppi reveal DIR        when each hidden obstacle was first seen, and could it stop
     vamppi collisions DIR... what each collision was on, and how long the map had shown it
 
-Every command takes `--config FILE` and `--set section.key=value` (repeatable).
+Every command takes `--config FILE` and `--set section.key=value` (repeatable). A bus
+command (health, record, replay, view, swap) given no `--connect` connects to the router
+of the `vamppi up` running on this machine (deploy/launch/running.py).
 
 Where each command's code is: up (deploy/launch/up.py), swap (launch/swap.py), certs
 (launch/certs.py), service, router, health (here, around common.bus); record and recover
-(recording/record.py), replay, timing, export-foxglove (recording/replay.py, timing.py,
-foxglove.py); run (sim/runner.py), experiment (sim/experiment.py, its summary
+(recording/record.py), replay, timing, export-foxglove, view (recording/replay.py,
+timing.py, foxglove.py, view.py); run (sim/runner.py), experiment (sim/experiment.py, its summary
 analysis/summary.py), scenario generate and set (sim/generate.py); reveal, collisions
 (analysis/); bench WHAT (bench/main.py).
 """
@@ -65,6 +68,18 @@ def add_bus_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--mode", choices=("peer", "client", "router"), help="bus.mode")
     g.add_argument("--connect", action="append", metavar="ENDPOINT", help="bus.connect")
     g.add_argument("--listen", action="append", metavar="ENDPOINT", help="bus.listen")
+
+
+def add_view_args(p: argparse.ArgumentParser, prefix: str = "") -> None:
+    """The live view's server settings (`vamppi view`; `vamppi up --view-...`)."""
+    g = p.add_argument_group("live view (Foxglove WebSocket)")
+    g.add_argument(f"--{prefix}host", default="127.0.0.1", dest="host",
+                   help="address to serve on (0.0.0.0: other machines too)")
+    g.add_argument(f"--{prefix}port", type=int, default=8765, dest="port",
+                   help="port to serve on (0: a free one)")
+    g.add_argument("--map-hz", type=float, default=2.0,
+                   help="maps shown per second at most (mean and variance: 1.7 MB of JSON)")
+    g.add_argument("--rollouts", type=int, default=30, help="sampled rollouts drawn per plan")
 
 
 def overrides_from_args(args: argparse.Namespace) -> list[str]:
@@ -123,6 +138,28 @@ def _stop_event() -> threading.Event:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     return stop
+
+
+class NoRouter(RuntimeError):
+    """A bus command has no router to connect to."""
+
+
+def find_bus(cfg: Config) -> Config:
+    """`cfg`, or, when its bus names no endpoint (no --connect, --listen or bus.zenoh) and
+    is a client's, `cfg` connected to the router of this machine's running `vamppi up`
+    (deploy/launch/running.py). NoRouter when there is none."""
+    b = cfg.bus
+    if b.connect or b.listen or b.zenoh or b.mode != "client":
+        return cfg
+    from deploy.launch.running import bus_overrides, locate
+    found = locate(cfg.episode.vehicle)
+    if found is None:
+        raise NoRouter(f"no router to connect to: no `vamppi up` of vehicle "
+                       f"{cfg.episode.vehicle!r} runs on this machine; give --connect "
+                       "ENDPOINT (a router's, e.g. tcp/127.0.0.1:7447)")
+    logging.getLogger(__name__).info("connecting to the router of vamppi up (pid %d) at %s",
+                                     found.pid, found.endpoint)
+    return cfg.replace(**bus_overrides(found))
 
 
 SERVICE_MAINS = {
@@ -190,7 +227,7 @@ def cmd_certs(args: argparse.Namespace, cfg: Config) -> int:
 def cmd_swap(args: argparse.Namespace, cfg: Config) -> int:
     """Start a planner instance beside the running one and hand it the authority."""
     from deploy.launch.swap import SwapError, promote, swap
-    cfg = with_identity(cfg, "operator")
+    cfg = with_identity(find_bus(cfg), "operator")
     try:
         if args.to:
             report = promote(cfg, args.to, keep_old=args.keep_old, timeout_s=args.timeout)
@@ -300,7 +337,7 @@ def cmd_health(args: argparse.Namespace, cfg: Config) -> int:
     """Every live service instance of the vehicle and its health counters, one JSON line each."""
     from common.bus import ZenohTransport, alive_instances, query_json
     from common.topics import admin_key
-    bus = ZenohTransport.open(with_identity(cfg, "viewer").bus)
+    bus = ZenohTransport.open(with_identity(find_bus(cfg), "viewer").bus)
     try:
         found = sorted(alive_instances(bus, cfg.episode.vehicle))
         for service, instance in found:
@@ -351,8 +388,10 @@ def cmd_up(args: argparse.Namespace, cfg: Config) -> int:
     from deploy.launch.up import up
     _interrupt_on_sigterm()
     try:
+        view = ["--host", args.host, "--port", str(args.port), "--map-hz", str(args.map_hz),
+                "--rollouts", str(args.rollouts)] if args.view else None
         summary = up(cfg, overrides_from_args(args), args.config, timeout_s=args.wall_timeout,
-                     record=args.record, secure=not args.insecure)
+                     record=args.record, secure=not args.insecure, view=view)
     except KeyboardInterrupt:
         print("vamppi up: interrupted, every service stopped", file=sys.stderr)
         return 130
@@ -364,16 +403,14 @@ def cmd_record(args: argparse.Namespace, cfg: Config) -> int:
     """Record every sample under the key expression until Ctrl-C / SIGTERM / --duration."""
     from common.bus import ZenohTransport, open_session
     from common.topics import PREFIX
-    from deploy.recording.record import Recorder, live_service_configs, recording_metadata
+    from deploy.recording.record import Recorder, recording_metadata
     stop = _stop_event()
     keys = args.keys or f"{PREFIX}/{cfg.episode.vehicle}/**"
     log = logging.getLogger(__name__)
-    with open_session(with_identity(cfg, "recorder").bus) as session:
-        meta = recording_metadata(cfg.to_dict(), keys)
-        services = live_service_configs(session, cfg.episode.vehicle)
-        if services:
-            meta["services"] = services
-        rec = Recorder(ZenohTransport(session), keys, args.output, meta,
+    with open_session(with_identity(find_bus(cfg), "recorder").bus) as session:
+        # the services' configurations, not this command's: the Recorder asks each
+        rec = Recorder(ZenohTransport(session), keys, args.output,
+                       recording_metadata(None, keys, cfg.episode.vehicle),
                        flush_interval_s=args.flush_interval)
         log.info("recording %s to %s (Ctrl-C stops)", keys, args.output)
         stop.wait(args.duration)
@@ -398,6 +435,8 @@ def cmd_recover(args: argparse.Namespace, cfg: Config) -> int:
 
 def cmd_replay(args: argparse.Namespace, cfg: Config) -> int:
     from deploy.sim.experiment import parse_list
+    if not Path(args.file).is_file():
+        raise FileNotFoundError(f"no such recording: {args.file}")
     topics = parse_list(args.topics) if args.topics else None
     if args.feed:
         from deploy.recording.replay import feed
@@ -425,7 +464,7 @@ def cmd_replay(args: argparse.Namespace, cfg: Config) -> int:
     from common.bus import open_session
     from deploy.recording.replay import replay
     stop = _stop_event()
-    with open_session(cfg.bus) as session:
+    with open_session(find_bus(cfg).bus) as session:
         report = replay(session, args.file, args.rate, topics, args.loop, args.start_offset,
                         stop)
     print(json.dumps(report), flush=True)
@@ -491,6 +530,37 @@ def cmd_collisions(args: argparse.Namespace, cfg: Config) -> int:
     return 0
 
 
+def cmd_view(args: argparse.Namespace, cfg: Config) -> int:
+    """Serve the bus live to Foxglove until Ctrl-C / SIGTERM / --duration / the parent's
+    death (deploy/recording/view.py)."""
+    from common.bus import ZenohTransport
+    from deploy.recording.view import Viewer, lower_priority
+    from services.sensor.core import CameraParams
+    stop = _stop_event()
+    if args.stop_with_parent:
+        die_with_parent()
+        when_orphaned(stop.set)
+    os.environ.pop(PARENT_ENV, None)
+    lower_priority()
+    bus = ZenohTransport.open(with_identity(find_bus(cfg), "viewer").bus)
+    try:
+        viewer = Viewer(bus, cfg.episode.vehicle, CameraParams.from_config(cfg.sensor),
+                        args.host, args.port, map_hz=args.map_hz, rollouts=args.rollouts)
+    except RuntimeError as exc:           # the port is taken
+        bus.close()
+        print(f"vamppi view: cannot serve on {args.host}:{args.port}: {exc}", file=sys.stderr)
+        return 2
+    print(f"vamppi view: Foxglove WebSocket on ws://{args.host}:{viewer.port} (in the "
+          "Foxglove app: Open connection, Foxglove WebSocket)", file=sys.stderr, flush=True)
+    try:
+        stop.wait(args.duration)
+    finally:
+        stats = viewer.close()
+        bus.close()
+    print(json.dumps(stats), flush=True)
+    return 0
+
+
 def cmd_export_foxglove(args: argparse.Namespace, cfg: Config) -> int:
     from deploy.recording.foxglove import export
     report = export(args.input, args.output, args.map_stride, args.rollouts)
@@ -508,6 +578,9 @@ def _pipeline_commands(sub: Any) -> None:
     p.add_argument("--insecure", action="store_true",
                    help="plain TCP, no access control (default: mutual TLS on loopback with "
                         "certificates made on first use, docs/security.md)")
+    p.add_argument("--view", action="store_true",
+                   help="serve the episode live to Foxglove too (vamppi view, docs/foxglove.md)")
+    add_view_args(p, prefix="view-")
     p.set_defaults(func=cmd_up)
 
     p = sub.add_parser("service", help="run one service on its own")
@@ -613,6 +686,16 @@ def _recording_commands(sub: Any) -> None:
     p.add_argument("--json", action="store_true")
     p.add_argument("--plots", metavar="DIR")
     p.set_defaults(func=cmd_timing)
+
+    p = sub.add_parser("view", help="the bus live in Foxglove: a WebSocket server "
+                                    "(docs/foxglove.md)")
+    add_view_args(p)
+    p.add_argument("--duration", type=float, help="stop after this many seconds")
+    p.add_argument("--stop-with-parent", action="store_true",
+                   help="stop when the parent process dies (set by vamppi up --view)")
+    add_config_args(p, shorthands=False)
+    add_bus_args(p)
+    p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("export-foxglove", help="a recording in encodings Foxglove decodes")
     p.add_argument("input")

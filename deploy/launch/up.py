@@ -48,6 +48,7 @@ from common.topics import (
     topic_key,
 )
 from deploy.launch.certs import ensure_certs
+from deploy.launch.running import announce
 from services.plant.protocol import OUTCOMES
 
 log = logging.getLogger(__name__)
@@ -67,6 +68,11 @@ def router_config(port: int, certs: str = "") -> BusConfig:
     return BusConfig(mode="router", connect=(),
                      listen=(f"{'tls' if certs else 'tcp'}/127.0.0.1:{port}",),
                      multicast_scouting=False, certs=certs, identity="router" if certs else "")
+
+
+def router_certs(cfg: Config, endpoint: str) -> str:
+    """The certificates a client of `endpoint` uses ('' for plain TCP)."""
+    return (cfg.bus.certs or str(default_certs())) if endpoint.startswith("tls/") else ""
 
 
 def client_endpoint(port: int, certs: str = "") -> str:
@@ -270,7 +276,7 @@ class Supervisor:
 def services_up(cfg: Config, overrides: list[str], config_path: str | None = None,
                 services: tuple[str, ...] = SERVICES, ready_timeout_s: float = 300.0,
                 subscriptions: dict[str, Callable[[Any], None]] | None = None,
-                on_session: Callable[[Any], Callable[[], None]] | None = None,
+                on_session: Callable[[Any, str], Callable[[], None]] | None = None,
                 restarts: int = 0, env: dict[str, str] | None = None,
                 args: dict[str, list[str]] | None = None, secure: bool = True
                 ) -> Iterator[tuple[Any, str, Supervisor]]:
@@ -284,8 +290,8 @@ def services_up(cfg: Config, overrides: list[str], config_path: str | None = Non
 
     `subscriptions` (key -> callback) are declared on the router's session before
     any service starts, so nothing the services publish is missed; so is
-    `on_session(session)` (a recorder), whose returned finaliser runs after every
-    service has stopped.
+    `on_session(session, endpoint)` (a recorder, a viewer: `hooks`), whose returned
+    finaliser runs after every service has stopped.
     """
     certs = cfg.bus.certs or (str(ensure_certs(default_certs())) if secure else "")
     if certs != cfg.bus.certs:
@@ -295,7 +301,7 @@ def services_up(cfg: Config, overrides: list[str], config_path: str | None = Non
     with open_session(router_config(port, certs)) as session:
         for key, callback in (subscriptions or {}).items():
             session.declare_subscriber(key, callback)
-        finish = on_session(session) if on_session is not None else None
+        finish = on_session(session, endpoint) if on_session is not None else None
         sup = Supervisor(endpoint, overrides, config_path, (), restarts, ready_timeout_s,
                          env, cfg.supervision.heartbeat_deadline_s)
         for name in services:
@@ -326,13 +332,31 @@ def services_up(cfg: Config, overrides: list[str], config_path: str | None = Non
                 finish()
 
 
-def recording_hook(cfg: Config, path: str, summary: dict[str, Any]
-                   ) -> Callable[[Any], Callable[[], None]]:
+Hook = Callable[[Any, str], Callable[[], None]]
+
+
+def hooks(*each: Hook | None) -> Hook | None:
+    """One `on_session` of several (None: skipped); finalisers run in reverse order."""
+    given = [h for h in each if h is not None]
+    if not given:
+        return None
+
+    def start(session: Any, endpoint: str) -> Callable[[], None]:
+        finishers = [h(session, endpoint) for h in given]
+
+        def finish() -> None:
+            for f in reversed(finishers):
+                f()
+        return finish
+    return start
+
+
+def recording_hook(cfg: Config, path: str, summary: dict[str, Any]) -> Hook:
     """An `on_session` that records every key of the vehicle to `path`; the recorder's
     statistics land in `summary["recording"]`."""
     from deploy.recording.record import Recorder, recording_metadata
 
-    def start(session: Any) -> Callable[[], None]:
+    def start(session: Any, _endpoint: str) -> Callable[[], None]:
         keys = f"{PREFIX}/{cfg.episode.vehicle}/**"
         rec = Recorder(ZenohTransport(session), keys, path,
                        recording_metadata(cfg.to_dict(), keys))
@@ -348,12 +372,58 @@ def recording_hook(cfg: Config, path: str, summary: dict[str, Any]
     return start
 
 
+def start_viewer(endpoint: str, overrides: list[str], config_path: str | None,
+                 args: list[str]) -> subprocess.Popen:
+    """`vamppi view` (deploy/recording/view.py) on the router at `endpoint`, stopping with
+    this process; its statistics come back on its stdout (`stop_viewer`)."""
+    cmd = [sys.executable, "-m", "deploy", "view", "--stop-with-parent", *args,
+           *(["--config", config_path] if config_path else [])]
+    for o in overrides:
+        cmd += ["--set", o]
+    cmd += ["--set", 'bus.mode="client"', "--set", f"bus.connect={json.dumps([endpoint])}",
+            "--set", "bus.listen=[]"]
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=sys.stderr,
+                            stdin=subprocess.DEVNULL, text=True,
+                            env={**os.environ, PARENT_ENV: str(os.getpid())})
+
+
+def stop_viewer(proc: subprocess.Popen, grace_s: float = 5.0) -> dict[str, Any]:
+    """Stop the viewer; its statistics (Viewer.stats), or why there are none."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+    try:
+        out, _ = proc.communicate(timeout=grace_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, _ = proc.communicate()
+    try:
+        return json.loads(out.strip().splitlines()[-1])
+    except (ValueError, IndexError):
+        return {"error": f"the viewer exited with code {proc.returncode} and no statistics"}
+
+
+def viewer_hook(overrides: list[str], config_path: str | None, args: list[str],
+                summary: dict[str, Any]) -> Hook:
+    """An `on_session` that starts `vamppi view` with `args` on the router before any
+    service (so that it sees the episode from its start); its statistics land in
+    `summary["view"]`."""
+    def start(_session: Any, endpoint: str) -> Callable[[], None]:
+        proc = start_viewer(endpoint, overrides, config_path, args)
+
+        def finish() -> None:
+            summary["view"] = stop_viewer(proc)
+        return finish
+    return start
+
+
 def up(cfg: Config, overrides: list[str], config_path: str | None = None,
-       timeout_s: float = 900.0, record: str | None = None, secure: bool = True
-       ) -> dict[str, Any]:
-    """Run one episode across processes (recorded to `record` if given), supervised,
-    secured unless not `secure` (`services_up`); returns the summary record. The
-    outcome is taken only from the plant this launcher started (`Supervisor.owns`)."""
+       timeout_s: float = 900.0, record: str | None = None, secure: bool = True,
+       view: list[str] | None = None) -> dict[str, Any]:
+    """Run one episode across processes (recorded to `record` if given, served live to
+    Foxglove with `vamppi view`'s arguments `view` if given), supervised, secured unless
+    not `secure` (`services_up`); returns the summary record. The outcome is taken only
+    from the plant this launcher started (`Supervisor.owns`). While it runs, its router is
+    announced on this machine (deploy/launch/running.py)."""
     summary: dict[str, Any] = {
         "scenario": cfg.episode.scenario, "controller": cfg.planner.controller,
         "samples": cfg.planner.samples, "seed": cfg.episode.seed, "outcome": "error",
@@ -364,10 +434,15 @@ def up(cfg: Config, overrides: list[str], config_path: str | None = None,
     try:
         with services_up(cfg, overrides, config_path, subscriptions={
                 events.key: lambda s: events.on_payload(s.payload.to_bytes())},
-                on_session=recording_hook(cfg, record, summary) if record else None,
-                restarts=cfg.supervision.restarts, secure=secure) as (session, endpoint, sup):
-            log.info("all services up after %.1f s, router on %s (vamppi swap --connect %s)",
-                     time.monotonic() - wall0, endpoint, endpoint)
+                on_session=hooks(recording_hook(cfg, record, summary) if record else None,
+                                 viewer_hook(overrides, config_path, view, summary) if view
+                                 else None),
+                restarts=cfg.supervision.restarts, secure=secure) as (session, endpoint, sup), \
+                announce(endpoint, cfg.episode.vehicle, router_certs(cfg, endpoint)):
+            summary["router"] = endpoint
+            print(f"vamppi up: router on {endpoint} (vamppi health, record, view and swap on "
+                  "this machine find it by themselves)", file=sys.stderr, flush=True)
+            log.info("all services up after %.1f s", time.monotonic() - wall0)
             bus = ZenohTransport(session)
             requests: queue.SimpleQueue[dict[str, Any]] = queue.SimpleQueue()
 

@@ -6,7 +6,7 @@ well-known schemas (jsonschema encoding), on these topics:
 
 | topic | schema | from |
 |---|---|---|
-| /tf | foxglove.FrameTransform | state: world -> base_link |
+| /tf | foxglove.FrameTransform | state: world -> base_link, base_link -> camera |
 | /vehicle/pose | foxglove.PoseInFrame | state |
 | /vehicle/path | foxglove.PosesInFrame | states so far, one pose per control tick |
 | /map/mean, /map/variance | foxglove.Grid | map (float32 cells, row = y) |
@@ -16,7 +16,12 @@ well-known schemas (jsonschema encoding), on these topics:
 | /planner/stats | vamppi.StatsJson | stats (solve time, cost terms: plot them) |
 
 Message log times are the recording's receive times; the `timestamp` inside
-each message is the publisher's wall time. Frame `world` is the map frame.
+each message is the publisher's wall time. Frame `world` is the map frame; `camera` is
+the depth camera's optical frame (x right, y down, z forward: where Foxglove places the
+image), mounted as the sensor's configuration says.
+
+`Converter` is the one place for each conversion: the export and the live view
+(`vamppi view`, deploy/recording/view.py) both call it.
 """
 
 from __future__ import annotations
@@ -30,8 +35,10 @@ from typing import Any
 import numpy as np
 from mcap.writer import CompressionType, Writer
 
+from common.config import ConfigError, load_config
 from common.messages import DecodeError, Depth, Event, Map, Message, Plan, State, Stats, decode
-from deploy.recording.record import iter_messages, package_versions, read_metadata
+from deploy.recording.record import iter_messages, package_versions, read_metadata, recorded_config
+from services.sensor.core import CameraParams, camera_pose
 
 # ----------------------------------------------------------------------------- schemas
 _NUM = {"type": "number"}
@@ -151,11 +158,54 @@ def grid(m: Map, layer: str) -> dict[str, Any]:
             "data": base64.b64encode(a.tobytes()).decode()}
 
 
+def quaternion(r: np.ndarray) -> dict[str, float]:
+    """The unit quaternion of a rotation matrix, from its largest component (accurate for
+    every rotation)."""
+    t = float(np.trace(r))
+    if t > 0:
+        s = 2 * math.sqrt(t + 1)
+        w, x, y, z = (
+            s / 4, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s)
+    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
+        s = 2 * math.sqrt(1 + r[0, 0] - r[1, 1] - r[2, 2])
+        w, x, y, z = (
+            (r[2, 1] - r[1, 2]) / s, s / 4, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s)
+    elif r[1, 1] > r[2, 2]:
+        s = 2 * math.sqrt(1 + r[1, 1] - r[0, 0] - r[2, 2])
+        w, x, y, z = (
+            (r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, s / 4, (r[1, 2] + r[2, 1]) / s)
+    else:
+        s = 2 * math.sqrt(1 + r[2, 2] - r[0, 0] - r[1, 1])
+        w, x, y, z = (
+            (r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, s / 4)
+    return {"x": float(x), "y": float(y), "z": float(z), "w": float(w)}
+
+
+def camera_mount(camera: CameraParams) -> dict[str, Any]:
+    """base_link -> camera (the optical frame) as the sensor renders from it
+    (services.sensor.core.camera_pose of the vehicle at the origin, heading x)."""
+    pos, rot = camera_pose(camera, 0.0, 0.0, 0.0, 0.0)
+    return {"translation": {"x": float(pos[0]), "y": float(pos[1]), "z": float(pos[2])},
+            "rotation": quaternion(rot)}
+
+
+def camera_of(cfg_dict: dict[str, Any]) -> CameraParams:
+    """The camera of a configuration (a recording's, as JSON); the defaults' if unreadable."""
+    try:
+        cfg = load_config(overrides={f"sensor.{k}": v
+                                     for k, v in cfg_dict.get("sensor", {}).items()})
+    except ConfigError:
+        cfg = load_config()
+    return CameraParams.from_config(cfg.sensor)
+
+
 class Converter:
     """Our messages -> (topic, JSON-able Foxglove message) pairs; keeps the path."""
 
-    def __init__(self, map_stride: int = 1, rollouts: int = 30):
+    def __init__(self, map_stride: int = 1, rollouts: int = 30,
+                 camera: CameraParams | None = None):
         self.map_stride, self.rollouts = max(1, map_stride), rollouts
+        self.mount = camera_mount(camera or camera_of({}))
         self.maps = 0
         self.path: list[dict[str, Any]] = []
         self._last_tick = -1
@@ -168,6 +218,8 @@ class Converter:
             out = [("/tf", {"timestamp": t, "parent_frame_id": "world",
                             "child_frame_id": "base_link",
                             "translation": pose["position"], "rotation": pose["orientation"]}),
+                   ("/tf", {"timestamp": t, "parent_frame_id": "base_link",
+                            "child_frame_id": "camera", **self.mount}),
                    ("/vehicle/pose", {"timestamp": t, "frame_id": "world", "pose": pose})]
             if msg.tick != self._last_tick:
                 self._last_tick = msg.tick
@@ -213,7 +265,7 @@ class Converter:
 def export(src: str | Path, dst: str | Path, map_stride: int = 1,
            rollouts: int = 30) -> dict[str, Any]:
     """Write `dst` from the recording `src`; returns message counts per topic."""
-    conv = Converter(map_stride, rollouts)
+    conv = Converter(map_stride, rollouts, camera_of(recorded_config(src, "sensor")))
     counts = {topic: 0 for topic in TOPICS}
     skipped = 0
     with open(dst, "wb") as f:
@@ -239,3 +291,38 @@ def export(src: str | Path, dst: str | Path, map_stride: int = 1,
         w.finish()
     return {"input": str(src), "output": str(dst), "messages": counts,
             "undecodable_skipped": skipped}
+
+
+_JSON_TYPES: dict[str, tuple[type, ...]] = {
+    "object": (dict,), "array": (list,), "string": (str,), "boolean": (bool,),
+    "integer": (int,), "number": (int, float)}
+
+
+def violations(schema: dict[str, Any], value: Any, where: str = "$") -> list[str]:
+    """Where `value` breaks `schema` (the JSON Schema subset of SCHEMAS: type, properties,
+    items, minimum, maximum, base64 contentEncoding); [] if it conforms. Null stands for
+    a non-finite number (JSON has none)."""
+    kind = schema.get("type")
+    if value is None and kind == "number":
+        return []
+    if kind is not None and (not isinstance(value, _JSON_TYPES[kind]) or (
+            kind in ("integer", "number") and isinstance(value, bool))):
+        return [f"{where}: {type(value).__name__} is not {kind}"]
+    out = []
+    if kind in ("integer", "number"):
+        if "minimum" in schema and value < schema["minimum"]:
+            out.append(f"{where}: {value} < {schema['minimum']}")
+        if "maximum" in schema and value > schema["maximum"]:
+            out.append(f"{where}: {value} > {schema['maximum']}")
+    if schema.get("contentEncoding") == "base64":
+        try:
+            base64.b64decode(value, validate=True)
+        except ValueError:
+            out.append(f"{where}: not base64")
+    for name, sub in schema.get("properties", {}).items():
+        if isinstance(value, dict) and name in value:
+            out += violations(sub, value[name], f"{where}.{name}")
+    if kind == "array" and "items" in schema:
+        for i, item in enumerate(value):
+            out += violations(schema["items"], item, f"{where}[{i}]")
+    return out

@@ -12,7 +12,12 @@ A recording holds every sample of the recorded keys, as it arrived:
   defaults);
 - metadata `vamppi` (config as JSON, scenario, vehicle, clock, key expression,
   git commit), `versions` (Python packages) and, at a clean stop,
-  `vamppi.recording` (counts, seq gaps per publisher, largest backlog).
+  `vamppi.recording` (counts, seq gaps per publisher, largest backlog);
+- metadata `services`: the effective configuration of every service instance the
+  recorder met on the bus (its `config` queryable), also of those that appeared after it
+  started. A standalone `vamppi record` stores no configuration of its own (`config`
+  "{}", `config_source` "services"): what the recording was made with is what the
+  services said (`recorded_config`, `recording_label`), or unknown.
 
 Crash safety: the open chunk is closed and handed to the OS at least every
 `flush_interval_s` (0.5 s), so a SIGKILLed recorder loses at most that much plus
@@ -80,31 +85,23 @@ def package_versions() -> dict[str, str]:
     return out
 
 
-def recording_metadata(cfg_dict: dict[str, Any] | None, keys: str) -> dict[str, dict[str, str]]:
-    """The metadata records written at the start of a recording."""
+def recording_metadata(cfg_dict: dict[str, Any] | None, keys: str, vehicle: str = ""
+                       ) -> dict[str, dict[str, str]]:
+    """The metadata records written at the start of a recording: `cfg_dict` is the
+    configuration every service was given (`vamppi up --record`), None for a standalone
+    recorder, whose own configuration says nothing of the services'."""
     episode = (cfg_dict or {}).get("episode", {})
     return {"vamppi": {"config": json.dumps(cfg_dict or {}), "keys": keys,
+                       "config_source": "launcher" if cfg_dict else "services",
                        "scenario": str(episode.get("scenario", "")),
-                       "vehicle": str(episode.get("vehicle", "")),
+                       "vehicle": str(episode.get("vehicle", vehicle)),
                        "clock": str(episode.get("clock", "")),
                        "git_commit": git_commit(), "host": platform.node(),
                        "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")},
             "versions": package_versions()}
 
 
-def live_service_configs(session: Any, vehicle: str, timeout_s: float = 2.0
-                         ) -> dict[str, str]:
-    """The effective configuration (JSON) of every service instance on the bus, by
-    "<service>/<instance>" (their `config` queryables): what a standalone recorder
-    stores, since its own configuration need not be the services'."""
-    from common.topics import admin_key
-    out = {}
-    for reply in session.get(admin_key(vehicle, "*", "*", "config"), timeout=timeout_s):
-        if reply.ok is not None:
-            parts = str(reply.ok.key_expr).split("/")
-            out[f"{parts[3]}/{parts[4]}"] = reply.ok.payload.to_bytes().decode()
-    return out
-
+SERVICES_METADATA = "services"       # "<service>/<instance>" -> its configuration (JSON)
 
 # ----------------------------------------------------------------------------- writer
 class RecordingWriter:
@@ -185,10 +182,11 @@ class RecordingWriter:
                 "duplicates": sum(p.duplicates for p in self.publishers.values()),
                 "publishers": pubs}
 
-    def note(self, name: str, values: dict[str, Any]) -> None:
-        """A metadata record now, among the messages (a crash keeps it); values as JSON.
-        Of several with one name, readers keep the last."""
-        self._w.add_metadata(name, {k: json.dumps(v) for k, v in values.items()})
+    def note(self, name: str, values: dict[str, Any], texts: bool = False) -> None:
+        """A metadata record now, among the messages (a crash keeps it); values as JSON
+        (as they are if `texts`). Of several with one name, readers keep the last."""
+        self._w.add_metadata(name, values if texts else {
+            k: json.dumps(v) for k, v in values.items()})
 
     def close(self, extra: dict[str, Any] | None = None) -> dict[str, Any]:
         """Write the statistics metadata, the summary section and close the file."""
@@ -218,6 +216,7 @@ class Recorder:
     """
 
     RECOVERY_WAIT_S = 2.0          # a recovered sample the live stream may still bring
+    CONFIG_RETRY_S = 1.0           # between asks of a service that has not told its config
     CLOCK_SYNC_S = 10.0            # between measurements of the publishers' clocks
     BEAT_FRESH_S = 0.3             # a publisher is asked its clock only if it beat since
 
@@ -228,7 +227,11 @@ class Recorder:
         (`common.bus.measure_clocks`) and noted in the recording (metadata
         `vamppi.clock`, the tightest so far), for `vamppi timing` across hosts; None: never
         (and for keys that are not one vehicle's). Only a service whose heartbeat arrived
-        within `BEAT_FRESH_S` is asked, and a new one as soon as it beats."""
+        within `BEAT_FRESH_S` is asked, and a new one as soon as it beats.
+
+        The configuration of every service instance whose heartbeat arrives is asked of it
+        once (its `config` queryable) and noted (metadata `services`), for keys that are
+        one vehicle's."""
         self.keys, self.path = keys, Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._writer = RecordingWriter(self.path, meta, flush_interval_s)
@@ -245,11 +248,16 @@ class Recorder:
         self.clocks: dict[str, Any] = {}
         self._clocks_changed = False
         self._beats: dict[str, float] = {}        # source -> monotonic time of its beat
+        self.configs: dict[str, str] = {}          # source -> its configuration (JSON)
+        self._configs_changed = False
         parts = keys.split("/")
-        if clock_sync_s is not None and len(parts) == 3 and parts[2] == "**" and "*" not in \
-                parts[1]:
+        one_vehicle = len(parts) == 3 and parts[2] == "**" and "*" not in parts[1]
+        if clock_sync_s is not None and one_vehicle:
             threading.Thread(target=self._sync_clocks, args=(bus, parts[1], clock_sync_s),
                              name="recorder-clocks", daemon=True).start()
+        if one_vehicle:
+            threading.Thread(target=self._follow_configs, args=(bus, parts[1]),
+                             name="recorder-configs", daemon=True).start()
         self._subs = [bus.subscriber(keys, lambda k, p: self._on_sample(k, p, False))]
         prefix = keys[:-3] if keys.endswith("/**") else None
         for topic, owner in CACHED.items():
@@ -294,6 +302,28 @@ class Recorder:
                         self.clocks, self._clocks_changed = clocks, True
             time.sleep(0.1)
 
+    def _follow_configs(self, bus: Any, vehicle: str) -> None:
+        from common.topics import admin_key
+        asked: dict[str, float] = {}
+        while not self._stop:
+            for source in [s for s in list(self._beats) if s not in self.configs]:
+                if time.monotonic() - asked.get(source, -1e9) < self.CONFIG_RETRY_S:
+                    continue
+                asked[source] = time.monotonic()
+                service, _, instance = source.partition("/")
+                try:
+                    replies = bus.query(admin_key(vehicle, service, instance, "config"),
+                                        timeout=1.0)
+                except Exception as exc:      # a closing session
+                    log.debug("config of %s: %s", source, exc)
+                    continue
+                if replies:
+                    with self._cv:
+                        self.configs[source] = replies[0][1].decode()
+                        self._configs_changed = True
+                        self._cv.notify()
+            time.sleep(0.1)
+
     def _recovered(self, key: str, payload: bytes, t: int, since: float, final: bool) -> bool:
         """Write a sample of the recovering subscription if the live one missed it; False
         while it may still come live."""
@@ -321,6 +351,10 @@ class Recorder:
                 stop = self._stop
                 clocks = self.clocks if self._clocks_changed else None
                 self._clocks_changed = False
+                configs = dict(self.configs) if self._configs_changed else None
+                self._configs_changed = False
+            if configs is not None:
+                self._writer.note(SERVICES_METADATA, configs, texts=True)
             if clocks is not None:
                 self._writer.note(CLOCK_METADATA, {s: {"offset_s": round(c.offset_s, 6),
                                                        "rtt_s": round(c.rtt_s, 6)}
@@ -464,15 +498,31 @@ def read_metadata(path: str | Path) -> dict[str, dict[str, str]]:
 def recorded_config(path: str | Path, service: str = "") -> dict[str, Any]:
     """The configuration a recording was made with: that of a live `service`
     instance if the recorder found one on the bus (metadata `services`), else the
-    recorder's own (`vamppi up --record`: the one every service was given)."""
+    launcher's (`vamppi up --record`: the one every service was given), else that of
+    any service the recorder met; {} when unknown (a standalone recorder that met none)."""
     meta = read_metadata(path)
-    live = meta.get("services", {})
+    live = meta.get(SERVICES_METADATA, {})
     texts = [v for k, v in sorted(live.items()) if k.split("/")[0] == service] + [
-        meta.get("vamppi", {}).get("config", "{}")]
-    try:
-        return json.loads(texts[0]) or {}
-    except json.JSONDecodeError:
-        return {}
+        meta.get("vamppi", {}).get("config", "{}")] + [v for _, v in sorted(live.items())]
+    for text in texts:
+        try:
+            cfg = json.loads(text)
+        except json.JSONDecodeError:
+            continue
+        if cfg:
+            return cfg
+    return {}
+
+
+def recording_label(path: str | Path) -> dict[str, str]:
+    """What a recording shows, from the configuration it was made with (the plant's for
+    the episode, the planner's for the controller): scenario, clock, controller, samples;
+    "unknown" for what no recorded configuration says."""
+    plant, planner = recorded_config(path, "plant"), recorded_config(path, "planner")
+    ep, pl = plant.get("episode", {}), planner.get("planner", {})
+    known = {"scenario": ep.get("scenario"), "clock": ep.get("clock"),
+             "controller": pl.get("controller"), "samples": pl.get("samples")}
+    return {k: "unknown" if v is None else str(v) for k, v in known.items()}
 
 
 def recover(path: str | Path, out: str | Path) -> dict[str, Any]:

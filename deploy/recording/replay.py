@@ -1,8 +1,13 @@
 """Replaying recordings: onto the bus with the recorded timing, or into fresh services.
 
-`replay` republishes each recorded payload, unchanged, on its key, at the
-recorded spacing of receive times divided by `rate` (0: as fast as possible),
-in the manner of `ros2 bag play` (topic filter, loop, start offset).
+`replay` republishes each recorded message on its key, at the recorded spacing of
+receive times divided by `rate` (0: as fast as possible), in the manner of `ros2 bag
+play` (topic filter, loop, start offset). Each message is stamped anew: its header's
+publish wall time becomes the time it is republished (everything else, seq and source
+included, is as recorded; an undecodable payload goes out unchanged), and the replay
+beats on `vamppi/<vehicle>/replay/heartbeat` as `replay/<pid>` (detail: the file), so
+that a recording of a replay says what it is and `vamppi timing` measures the replay's
+own transport.
 
 `feed` starts fresh instances of some services (say mapper and planner) in
 lockstep with the recording's own configuration, publishes to them the
@@ -19,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import tempfile
 import threading
 import time
@@ -30,8 +36,9 @@ import numpy as np
 import zenoh
 
 from common.config import Config, config_toml, load_config
-from common.messages import DecodeError, Message, decode
-from common.topics import INPUTS, PREFIX, TOPICS, topic_of
+from common.messages import DecodeError, Heartbeat, Message, decode, encode
+from common.protocol import Out, Stamper
+from common.topics import INPUTS, PREFIX, REPLAY_SOURCE, TOPICS, heartbeat_key, topic_of
 from deploy.recording.record import Recorded, iter_messages, recorded_config, recording_keys
 
 log = logging.getLogger(__name__)
@@ -50,6 +57,27 @@ def key_matcher(topics: Iterable[str] | None):
 
 
 # ----------------------------------------------------------------------------- plain replay
+
+def restamped(payload: bytes, wall_time: float) -> bytes:
+    """`payload` with its header's publish wall time set to `wall_time`; an undecodable
+    one unchanged."""
+    try:
+        msg = decode(payload)
+    except DecodeError:
+        return payload
+    return encode(dataclasses.replace(msg, header=dataclasses.replace(msg.header,
+                                                                      wall_time=wall_time)))
+
+
+def replay_vehicle(path: str | Path) -> str:
+    """The vehicle whose keys a recording holds (the first key's), '' if none."""
+    for key in recording_keys(path):
+        parts = key.split("/")
+        if len(parts) >= 3 and parts[0] == PREFIX:
+            return parts[1]
+    return ""
+
+
 def replay(session: zenoh.Session, path: str | Path, rate: float = 1.0,
            topics: Iterable[str] | None = None, loop: bool = False,
            start_offset_s: float = 0.0, stop: threading.Event | None = None,
@@ -65,6 +93,11 @@ def replay(session: zenoh.Session, path: str | Path, rate: float = 1.0,
     pubs = {key: session.declare_publisher(key, reliability=zenoh.Reliability.RELIABLE,
                                            congestion_control=zenoh.CongestionControl.BLOCK)
             for key in recording_keys(path) if wanted(key)}
+    vehicle = replay_vehicle(path)
+    beat = Stamper(f"{REPLAY_SOURCE}/{os.getpid()}")
+    beat_key = heartbeat_key(vehicle, REPLAY_SOURCE) if vehicle else ""
+    beat_pub = session.declare_publisher(beat_key) if beat_key else None
+    last_beat = -1e9
     deadline = time.monotonic() + wait_matching_s
     while (time.monotonic() < deadline and not stop.is_set()
            and not all(p.matching_status.matching for p in pubs.values())):
@@ -88,12 +121,18 @@ def replay(session: zenoh.Session, path: str | Path, rate: float = 1.0,
                 stop.wait(wait)
             else:
                 late_s = max(late_s, -wait)
-            pubs[m.key].put(m.data)
+            if beat_pub is not None and time.monotonic() - last_beat > 0.5:
+                last_beat = time.monotonic()
+                beat_pub.put(encode(beat.make(Heartbeat, Out(
+                    topic="heartbeat", stamp=0.0,
+                    fields={"status": "ready", "role": "replay", "deadline_s": 1.0,
+                            "detail": f"replay of {Path(path).name}"}))))
+            pubs[m.key].put(restamped(m.data, time.time()))
             published += 1
         loops += 1
         if not loop or published == 0:
             break
-    for p in pubs.values():
+    for p in [*pubs.values(), *([beat_pub] if beat_pub is not None else [])]:
         p.undeclare()
     return {"published": published, "loops": loops, "keys": sorted(pubs),
             "max_late_ms": round(late_s * 1e3, 3)}

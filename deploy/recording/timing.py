@@ -24,10 +24,15 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from common.messages import DecodeError, decode, peek
+from common.messages import DecodeError, Heartbeat, decode, peek
 from common.protocol import SeqTrack
-from common.topics import topic_key
-from deploy.recording.record import iter_messages, read_metadata, recorded_clocks
+from common.topics import REPLAY_SOURCE, heartbeat_key, topic_key
+from deploy.recording.record import (
+    iter_messages,
+    read_metadata,
+    recorded_clocks,
+    recording_label,
+)
 
 
 def stats_ms(times: list[float]) -> dict[str, float]:
@@ -149,6 +154,8 @@ def analyse(path: str | Path) -> dict[str, Any]:
     solve_ms: list[float] = []
     stats_key = topic_key(vehicle, "stats")
     undecodable = 0
+    replay_beat = heartbeat_key(vehicle, REPLAY_SOURCE)
+    replayed: set[str] = set()
     for m in iter_messages(path):
         k = per.setdefault(m.key, {"log": [], "latency": [], "sizes": [], "seqs": {}})
         k["log"].append(m.log_time_ns)
@@ -158,6 +165,11 @@ def analyse(path: str | Path) -> dict[str, Any]:
         except DecodeError:
             undecodable += 1
             continue
+        if m.key == replay_beat:
+            try:
+                replayed.add(decode(m.data, Heartbeat).detail)
+            except DecodeError:
+                undecodable += 1
         wall = header.wall_time - clocks.get(header.source, 0.0)    # on the recorder's clock
         k["latency"].append(m.log_time_ns / 1e9 - wall)
         k["seqs"].setdefault((header.source, header.boot), SeqTrack()).see(header.seq)
@@ -182,8 +194,8 @@ def analyse(path: str | Path) -> dict[str, Any]:
                "transport": _ms(k["latency"])}
         topics.append(row)
     out: dict[str, Any] = {"recording": str(path), "vehicle": vehicle,
-                           "clock": meta.get("clock", ""), "scenario": meta.get("scenario", ""),
-                           "git_commit": meta.get("git_commit", ""),
+                           **recording_label(path), "git_commit": meta.get("git_commit", ""),
+                           "replayed": sorted(replayed),
                            "undecodable": undecodable, "clock_offsets_s": clocks,
                            "topics": topics,
                            "chain": chain.summary()}
@@ -201,8 +213,14 @@ def table(result: dict[str, Any]) -> str:
     """The analysis as a Markdown table plus the chain and solve-time lines."""
     def f(v: Any) -> str:
         return "-" if v is None else f"{v:g}" if isinstance(v, float) else str(v)
-    lines = [f"timing of {result['recording']} ({result['clock'] or 'clock ?'}, "
-             f"{result['scenario'] or 'scenario ?'}, commit {result['git_commit'] or '?'})", "",
+    lines = [f"timing of {result['recording']} ({result['clock']} clock, scenario "
+             f"{result['scenario']}, {result['controller']} K = {result['samples']}, "
+             f"commit {result['git_commit'] or '?'})", ""]
+    if result.get("replayed"):
+        lines += [f"a recording of a replay ({', '.join(result['replayed'])}): rates and "
+                  "periods are the replay's; transport is from the replay, which stamps each "
+                  "message anew as it republishes it", ""]
+    lines += [
              "| key | msgs | rate Hz | period p50 ms | jitter (std) ms | bytes mean | bytes max "
              "| seq gaps | transport p50 ms | p95 ms | p99 ms |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
