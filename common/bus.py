@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Generic, Protocol, TypeVar
 
-from common.config import BusConfig
+from common.config import BusConfig, agreement_digest, disagreements
 from common.memory import keep_large_buffers
 from common.messages import DecodeError, Heartbeat, InputRef, Message, decode, encode
 from common.protocol import Out, SeqTrack, Stamper
@@ -464,6 +464,9 @@ class Node:
         self.detail = ""
         self.world = world                 # the digest of the scenario this instance runs
         self.refused = ""                  # why it must stop: the plant runs another world
+        self.agree = agreement_digest(self.config_dict) if self.config_dict else ""
+        self.disagreements: dict[str, list[str]] = {}   # source -> what it runs otherwise
+        self._checked: set[tuple[str, int]] = set()     # (source, boot) compared
         self._keep: list[Any] = []
         self._token = None
         self._status = "starting"
@@ -487,22 +490,56 @@ class Node:
         self._beat_thread = threading.Thread(target=self._beat_loop, daemon=True,
                                              name=f"{self.service}-heartbeat")
         self._beat_thread.start()
-        if self.world and self.service != "plant":
-            self._keep.append(self.transport.subscriber(
-                heartbeat_key(self.vehicle, "plant"), self._on_plant_beat))
+        if (self.world and self.service != "plant") or self.agree:
+            self._keep.append(self.transport.subscriber(heartbeat_key(self.vehicle),
+                                                        self._on_beat))
         return self
 
-    def _on_plant_beat(self, _key: str, payload: bytes) -> None:
+    def _on_beat(self, _key: str, payload: bytes) -> None:
+        """Another instance's beat: refuse a plant that runs another world; compare the
+        configuration of one that states another agreement digest (`_compare`)."""
         try:
             hb = decode(payload, Heartbeat)
         except DecodeError:
             return                        # counted where heartbeats are judged
+        h = hb.header
+        if (hb.agree and self.agree and hb.agree != self.agree and h.source != self.source
+                and (h.source, h.boot) not in self._checked):
+            self._checked.add((h.source, h.boot))
+            threading.Thread(target=self._compare, args=(h.source,), daemon=True,
+                             name=f"{self.service}-compare").start()
+        if not h.source.startswith("plant/") or self.service == "plant" or not self.world:
+            return
         if hb.world and hb.world != self.world and not self.refused:
             self.refused = (f"this {self.service} runs scenario digest {self.world}, the plant "
                             f"({hb.header.source}) {hb.world}: every service must load the "
                             "same scenario file")
             log.error("%s", self.refused)
             self._arrived.set()
+
+    def _compare(self, source: str) -> None:
+        """Ask `source` its configuration and warn of every `common.config.AGREE` key it
+        runs otherwise (counted: health `config_disagreements`)."""
+        service, _, instance = source.partition("/")
+        transport = self.transport
+        if transport is None:
+            return
+        try:
+            replies = transport.query(admin_key(self.vehicle, service, instance, "config"),
+                                      timeout=2.0)
+            theirs = json.loads(replies[0][1]) if replies else None
+        except Exception as exc:          # a closing session, a malformed answer
+            log.debug("config of %s: %s", source, exc)
+            theirs = None
+        keys = (disagreements(self.config_dict, theirs) if isinstance(theirs, dict)
+                else ["(its configuration did not come)"])
+        if not keys:
+            return
+        self.disagreements[source] = keys
+        self.health.count("config_disagreements")
+        log.warning("this %s and %s run different configurations where every service of "
+                    "vehicle %s must agree: %s", self.source, source, self.vehicle,
+                    "; ".join(keys))
 
     def __exit__(self, *exc: object) -> None:
         self._stop_beat.set()
@@ -535,7 +572,8 @@ class Node:
         if status == "ready" and time.monotonic() - self._progress_wall > self.stall_s:
             status = "stalled"
         self._beats.publish(self._stamp, episode=self._episode, status=status, role=self.role,
-                            deadline_s=self.deadline_s, detail=self.detail, world=self.world)
+                            deadline_s=self.deadline_s, detail=self.detail, world=self.world,
+                            agree=self.agree)
 
     def _beat_loop(self) -> None:
         while not self._stop_beat.wait(self.heartbeat_s):

@@ -445,3 +445,40 @@ def config_toml(cfg: Config) -> str:
         lines += [f"{key} = {json.dumps(value)}" for key, value in values.items()]
         lines.append("")
     return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------- agreement
+# What every service of one vehicle must run with alike: the episode's rules and clock,
+# the vehicle the planner predicts and the plant simulates, the supervision's timings.
+# (The world itself, scenario and layout, is compared by its digest: common.bus.Node.)
+AGREE: dict[str, tuple[str, ...] | None] = {
+    "episode": ("scenario", "scenario_seed", "layout", "clock", "timeout_s", "goal_radius_m",
+                "goal_speed_mps"),
+    "vehicle": None,                     # None: every key of the section
+    "supervision": None,
+}
+
+
+def agreement(cfg_dict: dict[str, Any]) -> dict[str, Any]:
+    """The `AGREE` part of a configuration (as `Config.to_dict` gives it), by dotted key."""
+    out = {}
+    for section, keys in AGREE.items():
+        values = cfg_dict.get(section, {})
+        for key in sorted(values) if keys is None else keys:
+            if key in values:
+                out[f"{section}.{key}"] = values[key]
+    return out
+
+
+def agreement_digest(cfg_dict: dict[str, Any]) -> str:
+    """A short digest of `agreement(cfg_dict)`: equal digests, equal agreement."""
+    import hashlib
+    text = json.dumps(agreement(cfg_dict), sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def disagreements(mine: dict[str, Any], theirs: dict[str, Any]) -> list[str]:
+    """`key: mine vs theirs` for each `AGREE` key two configurations differ on."""
+    a, b = agreement(mine), agreement(theirs)
+    return [f"{k}: {a.get(k)!r} vs {b.get(k)!r}" for k in sorted(set(a) | set(b))
+            if a.get(k) != b.get(k)]

@@ -219,14 +219,15 @@ class Heartbeat(Message):
     """An instance's beat: its main loop is alive and has made progress (common.supervision).
     The header's stamp is the newest simulation time it has worked on."""
     SCHEMA: ClassVar[str] = "vamppi.Heartbeat"
-    VERSION: ClassVar[int] = 4           # 4: world
-    VERSIONS_READ: ClassVar[tuple[int, ...]] = (1, 2, 3, 4)
+    VERSION: ClassVar[int] = 5           # 4: world; 5: agree
+    VERSIONS_READ: ClassVar[tuple[int, ...]] = (1, 2, 3, 4, 5)
     status: str = text()                 # starting | ready | stalled | stopping
     role: str = text()                   # what the instance does: "" or, for planners, active |
                                          # standby | shadow
     deadline_s: float = number()         # the next beat comes within this, or count it dead
     detail: str = text()
     world: str = text(since=4, older="")     # the digest of the scenario it runs ("" none)
+    agree: str = text(since=5, older="")     # common.config.agreement_digest of its config
 
 
 MESSAGE_TYPES: dict[str, type[Message]] = {

@@ -41,6 +41,7 @@ def test_small_experiment_records_are_complete_and_resumable(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     first = read_runs(out / "runs.jsonl")
     assert len(first) == 3
+    assert "±" not in (out / "summary.md").read_text().split("\n\n")[0]   # one run: no spread
     # a torn last line (as after a crash mid-write) is skipped, and resuming adds run 2
     with (out / "runs.jsonl").open("a") as f:
         f.write('{"scenario": "alleyway", "contr')
@@ -69,6 +70,17 @@ def test_small_experiment_records_are_complete_and_resumable(tmp_path):
     r = run(out, 2, ["--no-plots", "--config", str(out / "config.toml")])
     assert r.returncode == 0, r.stderr[-2000:]
     assert read_runs(out / "runs.jsonl") == runs
+    rows = [json.loads(line) for line in r.stdout.splitlines()]
+    assert {x["controller"] for x in rows} == {"va", "deterministic", "prescient"}
+    # resumed for one controller: only its rows are printed (summary.json keeps them all)
+    only = subprocess.run(
+        [sys.executable, "-m", "deploy", "experiment", "--scenario", "alleyway",
+         "--controllers", "va", "--samples", "16", "--runs", "2", "--seed", "3", "--out",
+         str(out), "--quiet", "--no-plots", "--config", str(out / "config.toml")],
+        capture_output=True, text=True, timeout=900)
+    assert only.returncode == 0, only.stderr[-2000:]
+    assert [json.loads(line)["controller"] for line in only.stdout.splitlines()] == ["va"]
+    assert len(json.loads((out / "summary.json").read_text())) == 3
     saved = load_config(out / "config.toml")
     assert saved.episode.timeout_s == 1.5 and config_digest(saved) == runs[0]["config_digest"]
     assert (saved.episode.scenario, saved.episode.layout) == ("alleyway", 1)   # pinned

@@ -136,7 +136,7 @@ def test_encode_writes_msgpacks_bytes_with_aligned_arrays(cls, rng):
         payload = encode(msg)
         raw = msgpack.unpackb(payload, raw=False)
         assert msgpack.packb(raw, use_bin_type=True) == payload   # msgpack's own encoding
-        assert raw["version"] == cls.VERSION == (4 if cls is Heartbeat else 3)
+        assert raw["version"] == cls.VERSION == (5 if cls is Heartbeat else 3)
         back = decode(payload, cls)
         start = np.frombuffer(payload, np.uint8).ctypes.data
         for f in dataclasses.fields(cls):

@@ -79,7 +79,10 @@ def test_vamppi_up_reaches_the_goal_and_prints_the_summary():
                        capture_output=True, text=True, timeout=600)
     last = json.loads(r.stdout.strip().splitlines()[-1])
     assert set(last) == {"scenario", "controller", "samples", "seed", "outcome",
-                         "time_to_goal_s", "sim_time_s", "wall_time_s", "restarts", "failure"}
+                         "time_to_goal_s", "sim_time_s", "wall_time_s", "restarts", "failure",
+                         "router"}
+    assert last["router"].startswith("tls/localhost:") and f"router on {last['router']}" in \
+        r.stderr
     assert last["outcome"] == "success", r.stderr[-3000:]
     assert last["restarts"] == {} and last["failure"] is None
     assert r.returncode == 0

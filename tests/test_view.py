@@ -4,10 +4,8 @@ the latest-value slots that keep a slow viewer out of the pipeline's way."""
 
 from __future__ import annotations
 
-import asyncio
 import json
 import math
-import struct
 import subprocess
 import sys
 import time
@@ -22,59 +20,21 @@ from common.protocol import Out, Stamper
 from common.topics import topic_key
 from deploy.launch.up import free_port
 from deploy.recording.foxglove import SCHEMAS, TOPICS, camera_mount, quaternion, violations
-from deploy.recording.view import KEEP, VIEWED, Latest, Viewer
+from deploy.recording.view import KEEP, VIEWED, Latest, Viewer, watch
 from services.sensor.core import CameraParams, camera_pose
 
-websockets = pytest.importorskip("websockets")
-SUBPROTOCOL = "foxglove.sdk.v1"
 
-
-# ----------------------------------------------------------------------------- a client
-async def _watch(port: int, until: float, want: set[str]) -> dict[str, list[dict]]:
-    """Connect to the Foxglove server on `port`, subscribe to every advertised channel,
-    and collect the decoded messages per topic until each of `want` has one (or `until`,
-    monotonic). Checks each channel's advertisement against our schemas."""
-    while True:
-        try:
-            ws = await websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL],
-                                          max_size=None)
-            break
-        except OSError:
-            if time.monotonic() > until:
-                raise
-            await asyncio.sleep(0.2)
-    subs: dict[int, dict] = {}
-    got: dict[str, list[dict]] = {}
-    async with ws:
-        while time.monotonic() < until and not want <= {t for t, v in got.items() if v}:
-            try:
-                frame = await asyncio.wait_for(ws.recv(), 0.5)
-            except TimeoutError:
-                continue
-            if isinstance(frame, str):
-                op = json.loads(frame)
-                if op["op"] == "advertise":
-                    new = []
-                    for ch in op["channels"]:
-                        assert ch["encoding"] == "json" and ch["schemaEncoding"] == "jsonschema"
-                        assert json.loads(ch["schema"]) == SCHEMAS[ch["schemaName"]]
-                        assert TOPICS[ch["topic"]] == ch["schemaName"]
-                        sid = len(subs) + 1
-                        subs[sid] = ch
-                        new.append({"id": sid, "channelId": ch["id"]})
-                    await ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
-                continue
-            assert frame[0] == 1                        # MessageData
-            sid, _log_time = struct.unpack("<IQ", frame[1:13])
-            ch = subs[sid]
-            body = json.loads(frame[13:])
-            assert violations(SCHEMAS[ch["schemaName"]], body) == [], ch["topic"]
-            got.setdefault(ch["topic"], []).append(body)
-    return got
-
-
-def watch(port: int, timeout_s: float, want: set[str]) -> dict[str, list[dict]]:
-    return asyncio.run(_watch(port, time.monotonic() + timeout_s, want))
+def check(got: dict[str, list[dict]]) -> dict[str, list[dict]]:
+    """Every channel advertised as ours, every message conforming to its schema; the
+    bodies per topic."""
+    for topic, msgs in got.items():
+        for m in msgs:
+            ch = m["channel"]
+            assert ch["encoding"] == "json" and ch["schemaEncoding"] == "jsonschema"
+            assert TOPICS[topic] == ch["schemaName"]
+            assert json.loads(ch["schema"]) == SCHEMAS[ch["schemaName"]]
+            assert m["violations"] == [], (topic, m["violations"])
+    return {topic: [m["body"] for m in msgs] for topic, msgs in got.items()}
 
 
 # ----------------------------------------------------------------------------- messages
@@ -128,7 +88,7 @@ def test_viewer_serves_every_channel_in_its_schema():
         import threading
         th = threading.Thread(target=feed, daemon=True)
         th.start()
-        got = watch(viewer.port, 20.0, set(TOPICS))
+        got = check(watch(viewer.port, 20.0, set(TOPICS)))
         stop = True
         th.join()
     finally:
@@ -211,7 +171,7 @@ def test_up_view_serves_the_episode_live(tmp_path):
          "--view", "--view-port", str(port)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        got = watch(port, 120.0, set(TOPICS) - {"/events"})
+        got = check(watch(port, 120.0, set(TOPICS) - {"/events"}))
         out, err = up.communicate(timeout=120)
     finally:
         if up.poll() is None:

@@ -28,8 +28,12 @@ log = logging.getLogger(__name__)
 CONTROLLER_COLORS = {"deterministic": "tab:red", "prescient": "tab:green", "va": "tab:blue"}
 
 
-def save_figure(fig, path: Path, dpi: int = 120, tight: bool = True) -> Path:
-    """Write `fig` to `path` (laid out tight unless not `tight`) and close it."""
+def save_figure(fig, path: Path, dpi: int = 120, tight: bool = True, title: str = "") -> Path:
+    """Write `fig` to `path` (laid out tight unless not `tight`), titled `title` above its
+    own titles (what it shows: the recording or experiment, controllers, K), and close it."""
+    if title:
+        old = fig.get_suptitle()
+        fig.suptitle(f"{title}: {old}" if old else title, fontsize=9)
     if tight:
         fig.tight_layout()
     fig.savefig(path, dpi=dpi)
@@ -41,7 +45,7 @@ def _groups(summary: list[dict[str, Any]], scenario: str) -> list[dict[str, Any]
     return [r for r in summary if r["scenario"] == scenario]
 
 
-def plot_failures(summary: list[dict[str, Any]], out: Path) -> Path:
+def plot_failures(summary: list[dict[str, Any]], out: Path, title: str = "") -> Path:
     scenarios = sorted({r["scenario"] for r in summary})
     fig, axes = plt.subplots(1, len(scenarios), figsize=(6 * len(scenarios), 4), squeeze=False)
     for ax, scenario in zip(axes[0], scenarios, strict=True):
@@ -59,10 +63,10 @@ def plot_failures(summary: list[dict[str, Any]], out: Path) -> Path:
         ax.set_ylim(0, 100)
         ax.set_title(scenario)
         ax.legend(fontsize=8)
-    return save_figure(fig, out / "failures.png")
+    return save_figure(fig, out / "failures.png", title=title)
 
 
-def plot_time_to_goal(runs: list[dict[str, Any]], out: Path) -> Path:
+def plot_time_to_goal(runs: list[dict[str, Any]], out: Path, title: str = "") -> Path:
     scenarios = sorted({r["scenario"] for r in runs})
     fig, axes = plt.subplots(1, len(scenarios), figsize=(6 * len(scenarios), 4), squeeze=False)
     for ax, scenario in zip(axes[0], scenarios, strict=True):
@@ -77,7 +81,7 @@ def plot_time_to_goal(runs: list[dict[str, Any]], out: Path) -> Path:
         ax.set_xticks(np.arange(1, len(labels) + 1), labels, fontsize=8)
         ax.set_ylabel("time to goal, s (successful runs)")
         ax.set_title(scenario)
-    return save_figure(fig, out / "time_to_goal.png")
+    return save_figure(fig, out / "time_to_goal.png", title=title)
 
 
 def _scenario_background(ax, cfg: Config, scenario: str) -> None:
@@ -102,14 +106,20 @@ def plot_scenario(cfg: Config, scenario: str, path: Path) -> Path:
                    vmax=5.0)
     fig.colorbar(im, ax=ax, label="elevation, m", shrink=0.8)
     for i, ob in enumerate(scn.obstacles):
-        if ob.height < 4.0:          # the tree trunks are too many to number
-            ax.annotate(str(i), (ob.x, ob.y), color="k", fontsize=7, ha="center", va="center")
+        if ob.height < 4.0 or ob.hidden:     # the tree trunks are too many to number
+            ax.annotate(str(i), (ob.x, ob.y), color="r" if ob.hidden else "k", fontsize=7,
+                        ha="center", va="center", fontweight="bold" if ob.hidden else None)
     ax.annotate("", (scn.start.x + 4 * np.cos(scn.start.yaw), scn.start.y
                      + 4 * np.sin(scn.start.yaw)), (scn.start.x, scn.start.y),
                 arrowprops={"arrowstyle": "->", "color": "k", "lw": 2})
     ax.plot(scn.start.x, scn.start.y, "k^", ms=8, label="start")
     ax.add_patch(plt.Circle((scn.goal.x, scn.goal.y), cfg.episode.goal_radius_m, fill=False,
-                            color="r", lw=1.5, label="goal region"))
+                            color="r", lw=1.5, label=f"goal region: within "
+                            f"{cfg.episode.goal_radius_m:g} m of the goal, below "
+                            f"{cfg.episode.goal_speed_mps:g} m/s"))
+    ax.plot([], [], " ", label="n: obstacle n as `vamppi scenario` lists it")
+    if any(ob.hidden for ob in scn.obstacles):
+        ax.plot([], [], " ", label="red n: hidden from the approach (behind an occluder)")
     ax.set_title(f"{scenario} (layout {scn.layout}): {scn.description}", fontsize=8, wrap=True)
     ax.set_xlabel("x, m")
     ax.set_ylabel("y, m")
@@ -117,8 +127,8 @@ def plot_scenario(cfg: Config, scenario: str, path: Path) -> Path:
     return save_figure(fig, path)
 
 
-def plot_trajectories(cfg: Config, runs: list[dict[str, Any]], scenario: str, out: Path
-                      ) -> Path:
+def plot_trajectories(cfg: Config, runs: list[dict[str, Any]], scenario: str, out: Path,
+                      title: str = "") -> Path:
     controllers = sorted({r["controller"] for r in runs if r["scenario"] == scenario})
     fig, axes = plt.subplots(1, len(controllers), figsize=(5.5 * len(controllers), 5),
                              squeeze=False)
@@ -134,15 +144,18 @@ def plot_trajectories(cfg: Config, runs: list[dict[str, Any]], scenario: str, ou
             if r["outcome"] == "collision":
                 ax.plot(p[-1, 1], p[-1, 2], "rx", ms=6)
         hits = sum(r["outcome"] == "collision" for r in mine)
-        ax.set_title(f"{scenario}, {c}: {len(mine)} runs, {hits} collisions (x)", fontsize=10)
+        ks = ", ".join(str(k) for k in sorted({r["samples"] for r in mine}))
+        ax.set_title(f"{scenario}, {c}, K = {ks}: {len(mine)} runs, {hits} collisions (x)",
+                     fontsize=10)
         ax.set_xlabel("x, m")
         ax.set_ylabel("y, m")
     if line is not None:
         fig.colorbar(line, ax=axes[0].tolist(), label="speed, m/s")
-    return save_figure(fig, out / f"trajectories_{label(scenario)}.png", tight=False)
+    return save_figure(fig, out / f"trajectories_{label(scenario)}.png", tight=False,
+                       title=title)
 
 
-def plot_solve_time(runs: list[dict[str, Any]], out: Path) -> Path:
+def plot_solve_time(runs: list[dict[str, Any]], out: Path, title: str = "") -> Path:
     fig, ax = plt.subplots(figsize=(7, 4))
     keys = sorted({(r["controller"], r["samples"]) for r in runs})
     for c, k in keys:
@@ -154,10 +167,11 @@ def plot_solve_time(runs: list[dict[str, Any]], out: Path) -> Path:
     ax.set_xlabel("solve time per control tick, ms (first tick, with compilation, excluded)")
     ax.set_ylabel("ticks")
     ax.legend(fontsize=8)
-    return save_figure(fig, out / "solve_time.png")
+    return save_figure(fig, out / "solve_time.png", title=title)
 
 
-def plot_visibility(cfg: Config, scenario: str, samples: int, seed: int, out: Path) -> Path:
+def plot_visibility(cfg: Config, scenario: str, samples: int, seed: int, out: Path,
+                    title: str = "") -> Path:
     """One VA-MPPI run: the map variance and the plan at four moments."""
     from deploy.sim.runner import run_episode
     run_cfg = cfg.replace(**{"episode.scenario": scenario, "planner.controller": "va",
@@ -177,8 +191,8 @@ def plot_visibility(cfg: Config, scenario: str, samples: int, seed: int, out: Pa
             ax.plot(s["x"][3], s["x"][4], "wo", ms=4)
             ax.set_title(f"{title}, t = {s['t']:.1f} s, surface cost {s['terms'][2]:.0f}, "
                          f"f_xt {s['controls'][0][1]:.0f} N", fontsize=8)
-    fig.suptitle(f"{scenario}, VA-MPPI K={samples}: {result.outcome}")
-    return save_figure(fig, out / f"visibility_{label(scenario)}.png", dpi=110)
+    fig.suptitle(f"{scenario}, VA-MPPI K={samples}, seed {seed}: {result.outcome}")
+    return save_figure(fig, out / f"visibility_{label(scenario)}.png", dpi=110, title=title)
 
 
 PER_SCENARIO_PLOTS = 6       # trajectories and visibility pictures only for this few scenarios
@@ -188,17 +202,19 @@ def plot_all(cfg: Config, runs: list[dict[str, Any]], summary: list[dict[str, An
              out: Path, visibility: bool = True) -> list[Path]:
     if not runs:
         return []
-    paths = [plot_failures(summary, out), plot_time_to_goal(runs, out), plot_solve_time(runs, out)]
+    title = f"experiment {out.name}"
+    paths = [plot_failures(summary, out, title), plot_time_to_goal(runs, out, title),
+             plot_solve_time(runs, out, title)]
     scenarios = sorted({r["scenario"] for r in runs})
     if len(scenarios) > PER_SCENARIO_PLOTS:
         log.info("plots: %d scenarios, no per-scenario plots (at most %d)", len(scenarios),
                  PER_SCENARIO_PLOTS)
         scenarios = []
     for scenario in scenarios:
-        paths.append(plot_trajectories(cfg, runs, scenario, out))
+        paths.append(plot_trajectories(cfg, runs, scenario, out, title))
         va = [r for r in runs if r["scenario"] == scenario and r["controller"] == "va"]
         if visibility and va:
             paths.append(plot_visibility(cfg, scenario, min(r["samples"] for r in va),
-                                         min(r["seed"] for r in va), out))
+                                         min(r["seed"] for r in va), out, title))
     log.info("plots: %s", ", ".join(p.name for p in paths))
     return paths

@@ -139,13 +139,17 @@ def torch_cost(torch: Any, c: CostParams, states: Any, xdots: Any, goal: Any, me
     return s_time + s_dyn + s_surf + s_dist + s_acc + s_or
 
 
+class MissingExtra(RuntimeError):
+    """The peer benchmark's optional packages are not installed."""
+
+
 def bench_peer(cfg: Config, samples: list[int], reps: int) -> dict[str, Any]:
     """Ours (deterministic controller, one iteration) against pytorch_mppi, per K."""
     try:
         import torch
         from pytorch_mppi import MPPI
     except ImportError as exc:
-        raise RuntimeError("the peer benchmark needs the optional extra: "
+        raise MissingExtra("needs the optional extra: "
                            "pip install -e '.[peer]' (torch, pytorch-mppi)") from exc
     from importlib.metadata import version
 

@@ -293,12 +293,18 @@ def cmd_scenario(args: argparse.Namespace, cfg: Config) -> int:
 
 def cmd_bench(args: argparse.Namespace, cfg: Config) -> int:
     from deploy.bench import main as bench
+    from deploy.bench.peer import MissingExtra
     from deploy.sim.experiment import parse_list
     samples = args.samples_list or ("800" if args.what == "pipeline" else "400,800,1000,4000")
     controllers = args.controllers or ("va" if args.what == "pipeline" else "va,deterministic")
-    return bench.main(cfg, args.what, parse_list(samples, int), parse_list(controllers),
-                      args.reps, args.json, overrides_from_args(args), args.duration, args.config,
-                      args.record)
+    reps = args.reps if args.reps is not None else (3 if args.what == "view" else 20)
+    try:
+        return bench.main(cfg, args.what, parse_list(samples, int), parse_list(controllers),
+                          reps, args.json, overrides_from_args(args), args.duration,
+                          args.config, args.record)
+    except MissingExtra as exc:
+        print(f"vamppi bench {args.what}: {exc}", file=sys.stderr)
+        return 2
 
 
 def cmd_router(args: argparse.Namespace, cfg: Config) -> int:
@@ -370,8 +376,10 @@ def cmd_experiment(args: argparse.Namespace, cfg: Config) -> int:
         print(f"vamppi experiment: interrupted; the finished runs are kept in "
               f"{Path(args.out) / 'runs.jsonl'}, and the same command resumes", file=sys.stderr)
         return 130
-    for row in summary:
-        print(json.dumps(row), flush=True)
+    asked = (set(parse_list(args.controllers)), set(parse_list(args.samples_list, int)))
+    for row in summary:                  # the directory may hold other runs: not asked for now
+        if row.get("controller") in asked[0] and row.get("samples") in asked[1]:
+            print(json.dumps(row), flush=True)
     return 0
 
 
@@ -606,7 +614,7 @@ def _pipeline_commands(sub: Any) -> None:
 
     p = sub.add_parser("router", help="a standalone Zenoh router (default tcp/127.0.0.1:7447, "
                                       "this machine only; --listen tcp/0.0.0.0:7447 for others)")
-    add_config_args(p)
+    add_config_args(p, shorthands=False)       # a router runs no episode
     add_bus_args(p)
     p.set_defaults(func=cmd_router)
 
@@ -780,7 +788,7 @@ def _tool_commands(sub: Any) -> None:
     """Benchmarks and the configuration."""
     p = sub.add_parser("bench", help="speed benchmarks (a table, or JSON with --json)")
     p.add_argument("what", choices=("planner", "mapper", "bus", "pipeline", "peer", "record",
-                                    "faults", "swaps", "security"))
+                                    "faults", "swaps", "security", "view"))
     p.add_argument("--samples", dest="samples_list",
                    help="sample counts K (planner, peer: 400,800,1000,4000; pipeline: 800)")
     p.add_argument("--controllers", help="planner: va,deterministic; pipeline: va")
@@ -790,7 +798,8 @@ def _tool_commands(sub: Any) -> None:
     p.add_argument("--scenario", help="pipeline: episode.scenario (default: the config's)")
     p.add_argument("--record", metavar="FILE.mcap",
                    help="pipeline: record each case (vamppi timing analyses the same run)")
-    p.add_argument("--reps", type=int, default=20, help="timed repetitions per case")
+    p.add_argument("--reps", type=int, default=None,
+                   help="timed repetitions per case (default 20; view: episodes per case, 3)")
     p.add_argument("--json", action="store_true", help="one JSON document instead of a table")
     add_config_args(p, shorthands=False)
     p.set_defaults(func=cmd_bench)
@@ -828,8 +837,20 @@ def main(argv: list[str] | None = None) -> Any:
     from deploy.recording.record import RecordingError
     try:
         return args.func(args, cfg)
-    except (RecordingError, FileNotFoundError, IsADirectoryError) as exc:
+    except (RecordingError, FileNotFoundError, IsADirectoryError, NoRouter) as exc:
         print(f"vamppi {args.command}: {exc}", file=sys.stderr)
+        return 2
+    except BrokenPipeError:
+        # the reader went away (`vamppi config | head`): quiet, as a shell tool, and no
+        # second error when Python flushes stdout at exit
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 128 + signal.SIGPIPE
+    except Exception as exc:
+        if type(exc).__module__.split(".")[0] != "zenoh":
+            raise
+        why = str(exc).split("  at ")[0]          # zenoh appends its source location
+        print(f"vamppi {args.command}: the bus: {why} (is a router running at "
+              f"{', '.join(cfg.bus.connect) or 'the endpoint given'}?)", file=sys.stderr)
         return 2
 
 

@@ -416,6 +416,15 @@ def viewer_hook(overrides: list[str], config_path: str | None, args: list[str],
     return start
 
 
+def summary_template(cfg: Config) -> dict[str, Any]:
+    """`vamppi up`'s summary before the episode: every key it prints (`view` and
+    `recording` join when asked for)."""
+    return {"scenario": cfg.episode.scenario, "controller": cfg.planner.controller,
+            "samples": cfg.planner.samples, "seed": cfg.episode.seed, "outcome": "error",
+            "time_to_goal_s": None, "sim_time_s": None, "wall_time_s": None, "restarts": {},
+            "failure": None, "router": None}
+
+
 def up(cfg: Config, overrides: list[str], config_path: str | None = None,
        timeout_s: float = 900.0, record: str | None = None, secure: bool = True,
        view: list[str] | None = None) -> dict[str, Any]:
@@ -424,11 +433,7 @@ def up(cfg: Config, overrides: list[str], config_path: str | None = None,
     not `secure` (`services_up`); returns the summary record. The outcome is taken only
     from the plant this launcher started (`Supervisor.owns`). While it runs, its router is
     announced on this machine (deploy/launch/running.py)."""
-    summary: dict[str, Any] = {
-        "scenario": cfg.episode.scenario, "controller": cfg.planner.controller,
-        "samples": cfg.planner.samples, "seed": cfg.episode.seed, "outcome": "error",
-        "time_to_goal_s": None, "sim_time_s": None, "wall_time_s": None, "restarts": {},
-        "failure": None}
+    summary = summary_template(cfg)
     events = Inbox(Event, topic_key(cfg.episode.vehicle, "events"), Health(), maxlen=1024)
     wall0 = time.monotonic()
     try:
@@ -440,9 +445,9 @@ def up(cfg: Config, overrides: list[str], config_path: str | None = None,
                 restarts=cfg.supervision.restarts, secure=secure) as (session, endpoint, sup), \
                 announce(endpoint, cfg.episode.vehicle, router_certs(cfg, endpoint)):
             summary["router"] = endpoint
-            print(f"vamppi up: router on {endpoint} (vamppi health, record, view and swap on "
-                  "this machine find it by themselves)", file=sys.stderr, flush=True)
-            log.info("all services up after %.1f s", time.monotonic() - wall0)
+            log.info("all services up after %.1f s, router on %s (vamppi health, record, view "
+                     "and swap on this machine find it by themselves)",
+                     time.monotonic() - wall0, endpoint)
             bus = ZenohTransport(session)
             requests: queue.SimpleQueue[dict[str, Any]] = queue.SimpleQueue()
 

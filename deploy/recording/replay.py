@@ -193,13 +193,15 @@ class LiveOutputs:
 def feed_config(path: str | Path, overrides: list[str], service: str = ""
                 ) -> tuple[Config, list[str]]:
     """The recording's configuration (that of its `service` if recorded), in lockstep,
-    with `overrides` on top."""
+    with `overrides` on top; its `[bus]` (where and as whom the recorded process
+    connected) is not taken: the fed services get their own."""
     recorded = recorded_config(path, service)
     if not recorded:
         raise ValueError(f"{path}: no configuration in the recording's metadata")
     base = load_config(overrides={f"{section}.{key}": value
                                   for section, values in recorded.items()
-                                  for key, value in values.items()})
+                                  for key, value in values.items()
+                                  if section != "bus"})    # that process's links, not ours
     run = [*overrides, 'episode.clock="lockstep"']
     with tempfile.NamedTemporaryFile("w", suffix=".toml", delete=False) as f:
         f.write(config_toml(base))

@@ -307,6 +307,8 @@ def plots(result: dict[str, Any], out_dir: str | Path) -> list[Path]:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     s = result["_series"]
+    title = (f"{Path(result['recording']).name}: {result['controller']} K = {result['samples']}, "
+             f"{result['scenario']}, {result['clock']} clock")
     written = []
     if s["solve_ms"]:
         fig, ax = plt.subplots(figsize=(6, 3.5))
@@ -314,7 +316,7 @@ def plots(result: dict[str, Any], out_dir: str | Path) -> list[Path]:
         ax.set_xlabel("planner solve time (ms)")
         ax.set_ylabel("ticks")
         ax.set_title("solve-time distribution")
-        written.append(save_figure(fig, out / "solve_time.png"))
+        written.append(save_figure(fig, out / "solve_time.png", title=title))
     if s["chains"]:
         a = np.asarray(s["chains"]) * 1e3
         fig, ax = plt.subplots(figsize=(6, 3.5))
@@ -324,7 +326,7 @@ def plots(result: dict[str, Any], out_dir: str | Path) -> list[Path]:
         ax.set_xticks(range(1, len(stages) + 1), list(stages))
         ax.set_ylabel("ms")
         ax.set_title("chain latency, depth capture to command applied")
-        written.append(save_figure(fig, out / "chain_latency.png"))
+        written.append(save_figure(fig, out / "chain_latency.png", title=title))
     keys = sorted(k for k, v in s["latency"].items() if v)
     if keys:
         fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
@@ -347,7 +349,7 @@ def plots(result: dict[str, Any], out_dir: str | Path) -> list[Path]:
         axes[1].set_yscale("log")
         for ax in axes:
             ax.legend(fontsize=7)
-        written.append(save_figure(fig, out / "topics.png"))
+        written.append(save_figure(fig, out / "topics.png", title=title))
     return written
 
 

@@ -20,17 +20,19 @@ Never in the pipeline's way:
 
 from __future__ import annotations
 
+import asyncio
 import collections
 import json
 import logging
 import os
+import struct
 import threading
 import time
 from typing import Any
 
 from common.messages import DecodeError, Event, Map, Message, State, decode
 from common.topics import topic_key
-from deploy.recording.foxglove import SCHEMAS, TOPICS, Converter
+from deploy.recording.foxglove import SCHEMAS, TOPICS, Converter, violations
 from services.sensor.core import CameraParams
 
 log = logging.getLogger(__name__)
@@ -173,6 +175,64 @@ class Viewer:
                 pass
         self.server.stop()
         return self.stats()
+
+
+# ----------------------------------------------------------------------------- a client
+SUBPROTOCOL = "foxglove.sdk.v1"      # what the Foxglove app and foxglove-sdk speak
+
+
+async def _watch(port: int, until: float, want: set[str], host: str) -> dict[str, list[Any]]:
+    import websockets
+    while True:
+        try:
+            ws = await websockets.connect(f"ws://{host}:{port}", subprotocols=[SUBPROTOCOL],
+                                          max_size=None)
+            break
+        except OSError:
+            if time.monotonic() > until:
+                raise
+            await asyncio.sleep(0.2)
+    subs: dict[int, dict[str, Any]] = {}
+    got: dict[str, list[Any]] = {}
+    async with ws:
+        while time.monotonic() < until and not (want and want <= set(got)):
+            try:
+                frame = await asyncio.wait_for(ws.recv(), 0.5)
+            except TimeoutError:
+                continue
+            except websockets.ConnectionClosed:
+                break
+            if isinstance(frame, str):
+                op = json.loads(frame)
+                if op.get("op") == "advertise":
+                    new = []
+                    for ch in op["channels"]:
+                        sid = len(subs) + 1
+                        subs[sid] = ch
+                        new.append({"id": sid, "channelId": ch["id"]})
+                    await ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
+                continue
+            if frame[0] != 1:                           # not MessageData
+                continue
+            sid, _log_time = struct.unpack("<IQ", frame[1:13])
+            ch = subs[sid]
+            body = json.loads(frame[13:])
+            problems = violations(SCHEMAS[ch["schemaName"]], body) if (
+                ch["schemaName"] in SCHEMAS and ch["schemaEncoding"] == "jsonschema") else []
+            got.setdefault(ch["topic"], []).append(
+                {"channel": ch, "body": body, "violations": problems})
+    return got
+
+
+def watch(port: int, timeout_s: float, want: set[str] = frozenset(), host: str = "127.0.0.1"
+          ) -> dict[str, list[dict[str, Any]]]:
+    """A Foxglove WebSocket client: connect to `host:port` (retrying until it serves),
+    subscribe to every channel it advertises, and collect what arrives, per topic, until
+    each topic of `want` has a message or `timeout_s` passes (`want` empty: the whole
+    time, or until the server closes). Each message: its channel's advertisement, its
+    JSON body and where it breaks its schema (`violations`). The tests' and the
+    benchmark's viewer."""
+    return asyncio.run(_watch(port, time.monotonic() + timeout_s, set(want), host))
 
 
 def lower_priority() -> None:
