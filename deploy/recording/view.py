@@ -181,7 +181,8 @@ class Viewer:
 SUBPROTOCOL = "foxglove.sdk.v1"      # what the Foxglove app and foxglove-sdk speak
 
 
-async def _watch(port: int, until: float, want: set[str], host: str) -> dict[str, list[Any]]:
+async def _watch(port: int, until: float, want: set[str], host: str, check: bool
+                 ) -> dict[str, list[Any]]:
     import websockets
     while True:
         try:
@@ -216,6 +217,9 @@ async def _watch(port: int, until: float, want: set[str], host: str) -> dict[str
                 continue
             sid, _log_time = struct.unpack("<IQ", frame[1:13])
             ch = subs[sid]
+            if not check:
+                got.setdefault(ch["topic"], []).append({"channel": ch, "bytes": len(frame)})
+                continue
             body = json.loads(frame[13:])
             problems = violations(SCHEMAS[ch["schemaName"]], body) if (
                 ch["schemaName"] in SCHEMAS and ch["schemaEncoding"] == "jsonschema") else []
@@ -224,15 +228,16 @@ async def _watch(port: int, until: float, want: set[str], host: str) -> dict[str
     return got
 
 
-def watch(port: int, timeout_s: float, want: set[str] = frozenset(), host: str = "127.0.0.1"
-          ) -> dict[str, list[dict[str, Any]]]:
+def watch(port: int, timeout_s: float, want: set[str] = frozenset(), host: str = "127.0.0.1",
+          check: bool = True) -> dict[str, list[dict[str, Any]]]:
     """A Foxglove WebSocket client: connect to `host:port` (retrying until it serves),
     subscribe to every channel it advertises, and collect what arrives, per topic, until
     each topic of `want` has a message or `timeout_s` passes (`want` empty: the whole
     time, or until the server closes). Each message: its channel's advertisement, its
-    JSON body and where it breaks its schema (`violations`). The tests' and the
-    benchmark's viewer."""
-    return asyncio.run(_watch(port, time.monotonic() + timeout_s, set(want), host))
+    JSON body and where it breaks its schema (`violations`); without `check`, only its
+    size in bytes (what a client that draws elsewhere costs this machine: receiving). The
+    tests' client, and without `check` the benchmark's."""
+    return asyncio.run(_watch(port, time.monotonic() + timeout_s, set(want), host, check))
 
 
 def lower_priority() -> None:
