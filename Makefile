@@ -1,15 +1,19 @@
 # `make demo` and `make test` create .venv and install on first use.
 PY ?= python3.11
+# the install extras (pyproject.toml): add cuda for JAX on an NVIDIA GPU, e.g.
+# `make test EXTRAS=test,cluster,cuda`
+EXTRAS ?= test,cluster
 VENV := .venv
 BIN := $(VENV)/bin
-STAMP := $(VENV)/.installed
+comma := ,
+STAMP := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 
 .PHONY: demo test lint certs clean native
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV) || python3 -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q -e '.[test]'
+	$(BIN)/pip install -q -e '.[$(EXTRAS)]'
 	$(BIN)/python -m services.build_native || echo "some native kernels not built: their services use the JAX forms"
 	touch $(STAMP)
 

@@ -12,6 +12,7 @@ price of keeping up to a few hundred MB of freed memory mapped.
 from __future__ import annotations
 
 import logging
+import os
 
 log = logging.getLogger(__name__)
 
@@ -34,3 +35,29 @@ def keep_large_buffers() -> bool:
             _malloc_tuned = False
         log.debug("malloc thresholds raised: %s", _malloc_tuned)
     return _malloc_tuned
+
+
+# ----------------------------------------------------------------------------- a GPU shared
+GPU_HEADROOM = 0.9      # of a GPU's memory, what vamppi's processes on it may take together
+# JAX processes of one pipeline on one machine: sensor, mapper, planner, and a planner
+# swapping in beside the running one (vamppi swap) or standing by
+PIPELINE_PROCESSES = 4
+
+
+def device_share(processes: int) -> dict[str, str]:
+    """The JAX settings by which `processes` processes share one GPU: none preallocates
+    (JAX's default takes 75 % of the GPU's memory at start, so a second process would find
+    none), each grows its pool on demand up to its share of `GPU_HEADROOM`. For the
+    environment of each process, before it starts JAX; on a CPU they change nothing."""
+    share = GPU_HEADROOM / max(1, processes)
+    return {"XLA_PYTHON_CLIENT_PREALLOCATE": "false",
+            "XLA_PYTHON_CLIENT_MEM_FRACTION": f"{share:.3f}"}
+
+
+def share_device(processes: int, environ: dict[str, str] | None = None) -> dict[str, str]:
+    """`device_share(processes)` into `environ` (default os.environ), except what it holds
+    already (the user's own settings win); returns what it set."""
+    env = os.environ if environ is None else environ
+    set_ = {k: v for k, v in device_share(processes).items() if k not in env}
+    env.update(set_)
+    return set_

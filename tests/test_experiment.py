@@ -122,23 +122,90 @@ def test_the_saved_configuration_pins_one_scenario_and_its_layout_by_number():
     assert saved_config(cfg, ["alleyway", "offroad"]) == cfg        # one number cannot pin two
 
 
-def test_worker_processes_give_the_records_of_one_process(tmp_path):
+@pytest.fixture(scope="module")
+def serial(tmp_path_factory):
+    """The in-process runs that the other wirings must give."""
+    out = tmp_path_factory.mktemp("serial")
+    r = run(out, 2, ["--no-plots"])
+    assert r.returncode == 0, r.stderr[-2000:]
+    return out
+
+
+def records(out):
+    """A directory's records by key, all but the solve and wall times."""
+    return {tuple(x[k] for k in KEY_FIELDS):
+            {k: v for k, v in x.items() if k not in ("solve_ms", "wall_time_s")}
+            for x in read_runs(out / "runs.jsonl")}
+
+
+def test_worker_processes_give_the_records_of_one_process(tmp_path, serial):
     """--jobs 2: the runs spread over two pinned worker processes, the parent writing their
     records, are the in-process runs bit for bit (all but the solve and wall times)."""
-    serial, parallel = tmp_path / "serial", tmp_path / "parallel"
-    for out, extra in ((serial, []), (parallel, ["--jobs", "2"])):
-        r = run(out, 2, ["--no-plots", *extra])
-        assert r.returncode == 0, r.stderr[-2000:]
-
-    def records(out):
-        return {tuple(x[k] for k in KEY_FIELDS):
-                {k: v for k, v in x.items() if k not in ("solve_ms", "wall_time_s")}
-                for x in read_runs(out / "runs.jsonl")}
-
+    parallel = tmp_path / "parallel"
+    r = run(parallel, 2, ["--no-plots", "--jobs", "2"])
+    assert r.returncode == 0, r.stderr[-2000:]
     a, b = records(serial), records(parallel)
     assert len(a) == 6 and a == b
     assert (parallel / "summary.json").read_text() == (serial / "summary.json").read_text()
     assert run(tmp_path / "x", 1, ["--jobs", "0"]).returncode == 2
+
+
+def _ray_tasks():
+    """Processes running a Ray task of the experiment (Ray titles a worker by its task)."""
+    found = []
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            with open(f"/proc/{pid}/cmdline", "rb") as f:
+                if f.read().startswith(b"ray::run_task"):
+                    found.append(int(pid))
+        except OSError:
+            pass
+    return found
+
+
+def test_a_local_ray_cluster_gives_the_records_of_one_process_though_a_worker_dies(
+        tmp_path, serial):
+    """--cluster local --jobs 2: the runs as Ray tasks on two workers, one of them killed
+    during its run; Ray runs that task again, and the records are the in-process ones bit
+    for bit (all but the solve and wall times); resuming a complete directory starts no
+    cluster."""
+    out = tmp_path / "ray"
+    cmd = [sys.executable, "-m", "deploy", "experiment", "--scenario", "alleyway",
+           "--controllers", "va,deterministic,prescient", "--samples", "16", "--runs", "2",
+           "--seed", "3", "--out", str(out), "--quiet", *SETTINGS, "--no-plots",
+           "--cluster", "local", "--jobs", "2"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 300
+        while not (busy := _ray_tasks()):            # a worker is running a run
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
+            time.sleep(0.05)
+        os.kill(busy[0], signal.SIGKILL)
+        _, err = proc.communicate(timeout=600)
+    finally:
+        if proc.poll() is None:
+            proc.terminate()
+            proc.wait(60)
+    assert proc.returncode == 0, err[-3000:]
+    assert not _alive(busy[0])
+    assert records(out) == records(serial)
+    assert (out / "summary.json").read_text() == (serial / "summary.json").read_text()
+    again = subprocess.run(cmd[:-4] + ["--cluster", "ray://nowhere:1", "--jobs", "2"],
+                           capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0 and "0 run(s) to do" in again.stderr, again.stderr[-2000:]
+    gone = run(tmp_path / "gone", 1, ["--no-plots", "--cluster", "127.0.0.1:1"])
+    assert gone.returncode == 2 and "Traceback" not in gone.stderr
+    assert "vamppi experiment: no Ray cluster at 127.0.0.1:1" in gone.stderr, gone.stderr[-2000:]
+
+
+def test_a_ray_worker_with_another_vamppi_or_world_refuses_the_run():
+    from deploy.sim.cluster import ClusterError, run_task, source_digest
+    cfg = load_config()
+    key = ("alleyway", "va", 16, 0)
+    with pytest.raises(ClusterError, match="is not the driver's"):
+        run_task(cfg, key, "0123456789abcdef", None)
+    with pytest.raises(ClusterError, match="another world there"):
+        run_task(cfg, key, source_digest(), "0123456789abcdef")
 
 
 def test_cpu_shares_are_disjoint_and_cover_the_cpus():

@@ -38,7 +38,7 @@ from typing import Any
 
 from common import compile_cache
 from common.config import Config, ConfigError, load_config, preset_overrides
-from common.memory import keep_large_buffers
+from common.memory import PIPELINE_PROCESSES, keep_large_buffers, share_device
 from common.process import PARENT_ENV, die_with_parent, exit_now, stop_on_signals, when_orphaned
 from common.security import default_certs, with_identity
 from common.supervision import REFUSED_EXIT, RETIRED_EXIT
@@ -183,6 +183,8 @@ def cmd_service(args: argparse.Namespace, cfg: Config) -> int:
         die_with_parent()
         when_orphaned(parent_gone)
     os.environ.pop(PARENT_ENV, None)
+    # before JAX starts: a pipeline's services share one GPU, none preallocating it
+    share_device(PIPELINE_PROCESSES)
     cfg = with_identity(cfg, args.name, args.instance)
     from common.bus import WorldMismatch
     module = importlib.import_module(SERVICE_MAINS[args.name])
@@ -361,15 +363,16 @@ def cmd_health(args: argparse.Namespace, cfg: Config) -> int:
 
 def cmd_experiment(args: argparse.Namespace, cfg: Config) -> int:
     from deploy.analysis.summary import write_summary
+    from deploy.sim.cluster import ClusterError
     from deploy.sim.experiment import ExperimentError, expand_scenarios, experiment, parse_list
     _interrupt_on_sigterm()
     try:
         runs = experiment(cfg, expand_scenarios(parse_list(args.scenarios)),
                           parse_list(args.controllers), parse_list(args.samples_list, int),
                           args.runs, args.seed_base, Path(args.out), progress=not args.quiet,
-                          jobs=args.jobs)
+                          jobs=args.jobs, cluster=args.cluster)
         summary = write_summary(cfg, runs, Path(args.out), plots=not args.no_plots)
-    except ExperimentError as exc:
+    except (ExperimentError, ClusterError) as exc:
         print(f"vamppi experiment: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
@@ -734,6 +737,10 @@ def _simulation_commands(sub: Any) -> None:
                    help="worker processes running runs side by side, each pinned to its "
                         "share of the CPUs (default 1: in this process); solve times are "
                         "then measured with the others competing")
+    p.add_argument("--cluster", metavar="ADDRESS",
+                   help="run the runs as tasks on the Ray cluster at ADDRESS (auto, "
+                        "HOST:6379, ray://HOST:10001), or on one started here with --jobs "
+                        "CPUs (local); needs the cluster extra")
     p.add_argument("--no-plots", action="store_true")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_config_args(p, shorthands=False)

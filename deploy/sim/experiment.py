@@ -21,7 +21,8 @@ Output directory:
   summary.*, *.png  what the runs show (deploy.analysis.summary), written by the
                  command after the runs
 
-With `jobs` > 1 the runs are spread over that many worker processes (each its own
+With `cluster`, the runs are tasks on a Ray cluster (deploy/sim/cluster.py). With
+`jobs` > 1 the runs are spread over that many worker processes (each its own
 JAX runtime and cores, pinned to its share of this process's CPUs when there are
 enough); this process alone writes runs.jsonl, a record as each run ends. A run's
 record does not depend on which process ran it (tested), except its solve and wall
@@ -44,6 +45,7 @@ import numpy as np
 from tqdm import tqdm
 
 from common.config import Config, config_toml
+from common.memory import share_device
 from common.process import when_orphaned
 from common.scenarios import build_scenario, resolve_layout
 from deploy.sim.runner import Cores, run_episode
@@ -214,8 +216,10 @@ def cpu_shares(jobs: int) -> list[list[int]] | None:
     return [cpus[i::jobs] for i in range(jobs)] if jobs <= len(cpus) else None
 
 
-def _worker_init(cfg: Config, shares: list[list[int]] | None, counter: Any) -> None:
+def _worker_init(cfg: Config, shares: list[list[int]] | None, counter: Any, jobs: int
+                 ) -> None:
     from common import compile_cache
+    share_device(jobs)                       # before JAX starts: the workers share a GPU
     # Ctrl-C is the parent's to handle: it stops the workers (`_records_parallel`)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     when_orphaned(lambda: os._exit(1))         # the parent killed outright: nothing to keep
@@ -238,7 +242,7 @@ def _records_parallel(cfg: Config, todo: list[tuple], jobs: int) -> Iterator[dic
     run in `todo`'s order). Stopped early (an interrupt, an error), the workers are
     killed: a run not finished has nothing to keep."""
     ctx = multiprocessing.get_context("spawn")       # a fresh JAX runtime per worker
-    pool = ctx.Pool(jobs, _worker_init, (cfg, cpu_shares(jobs), ctx.Value("i", 0)))
+    pool = ctx.Pool(jobs, _worker_init, (cfg, cpu_shares(jobs), ctx.Value("i", 0), jobs))
     try:
         yield from pool.imap_unordered(_worker_run, todo)
     finally:
@@ -247,10 +251,11 @@ def _records_parallel(cfg: Config, todo: list[tuple], jobs: int) -> Iterator[dic
 
 
 def experiment(cfg: Config, scenarios: list[str], controllers: list[str], samples: list[int],
-               runs: int, seed: int, out: Path, progress: bool = True, jobs: int = 1
-               ) -> list[dict[str, Any]]:
+               runs: int, seed: int, out: Path, progress: bool = True, jobs: int = 1,
+               cluster: str | None = None) -> list[dict[str, Any]]:
     """Run what is missing from `out/runs.jsonl` (in `jobs` worker processes when more
-    than 1) and return every run there; deploy.analysis.summary writes what they show."""
+    than 1; on the Ray cluster at `cluster` if given: deploy/sim/cluster.py) and return
+    every run there; deploy.analysis.summary writes what they show."""
     out.mkdir(parents=True, exist_ok=True)
     runs_path = out / "runs.jsonl"
     existing = read_runs(runs_path)
@@ -279,8 +284,13 @@ def experiment(cfg: Config, scenarios: list[str], controllers: list[str], sample
     todo = [(s, c, k, seed + i) for i in range(runs) for s in scenarios for c in controllers
             for k in samples if (s, c, k, seed + i) not in done]
     log.info("%d run(s) to do, %d already in %s", len(todo), len(done), runs_path)
-    records = _records_serial(cfg, todo) if jobs <= 1 or len(todo) <= 1 else \
-        _records_parallel(cfg, todo, jobs)
+    if cluster and todo:
+        from deploy.sim.cluster import records_on_cluster
+        records = records_on_cluster(cfg, todo, cluster, jobs)
+    elif jobs <= 1 or len(todo) <= 1:
+        records = _records_serial(cfg, todo)
+    else:
+        records = _records_parallel(cfg, todo, jobs)
     with tqdm(total=len(todo), desc="experiment", unit="run", disable=not progress,
               dynamic_ncols=True) as bar:
         for rec in records:
