@@ -42,10 +42,11 @@ class Case:
     compile_s: float
     mem_mb: float
     times: list[float]
+    forms: str                  # the kernels' forms that ran: visibility/rollouts
 
     def row(self) -> dict[str, Any]:
         t = np.asarray(self.times) * 1e3
-        return {"controller": self.controller, "samples": self.samples,
+        return {"controller": self.controller, "samples": self.samples, "forms": self.forms,
                 "median_ms": round(float(np.median(t)), 3),
                 "p95_ms": round(float(np.percentile(t, 95)), 3),
                 "min_ms": round(float(t.min()), 3), "reps": len(t),
@@ -71,9 +72,14 @@ def planner_inputs(cfg: Config) -> tuple:
             np.asarray(scn.origin, np.float32), res)
 
 
-def planner_case(cfg: Config, controller: str, samples: int, inputs: tuple) -> Case:
+def planner_case(cfg: Config, controller: str, samples: int, inputs: tuple,
+                 form: str | None = None) -> Case:
+    """One iteration of `controller` at K = `samples`, compiled; with `form` (jax, native,
+    auto) both kernel settings (planner.va_kernel, planner.rollout_kernel) set to it."""
     run_cfg = cfg.replace(**{"planner.controller": controller, "planner.samples": samples,
-                             "planner.iterations": 1})
+                             "planner.iterations": 1,
+                             **({"planner.va_kernel": form, "planner.rollout_kernel": form}
+                                if form else {})})
     params = PlannerParams.from_config(run_cfg)
     x0, u0, goal, mean, var, origin, res = inputs
     state = mppi.initial_state(params, 0)
@@ -85,13 +91,17 @@ def planner_case(cfg: Config, controller: str, samples: int, inputs: tuple) -> C
     mem_mb = ((mem.argument_size_in_bytes + mem.output_size_in_bytes + mem.temp_size_in_bytes)
               / 2 ** 20) if mem is not None else float("nan")
     jax.block_until_ready(compiled(*args))          # first run (allocation) excluded too
-    return Case(controller, samples, compiled, args, compile_s, mem_mb, [])
+    return Case(controller, samples, compiled, args, compile_s, mem_mb, [],
+                f"{params.visibility.va_kernel}/{params.rollout_kernel}")
 
 
-def bench_planner(cfg: Config, samples: list[int], controllers: list[str], reps: int
-                  ) -> dict[str, Any]:
+def bench_planner(cfg: Config, samples: list[int], controllers: list[str], reps: int,
+                  forms: list[str] | None = None) -> dict[str, Any]:
+    """Every controller x sample count (x kernel form of `forms`, default the configured
+    ones), interleaved."""
     inputs = planner_inputs(cfg)
-    cases = [planner_case(cfg, c, k, inputs) for k in samples for c in controllers]
+    cases = [planner_case(cfg, c, k, inputs, f) for k in samples for c in controllers
+             for f in (forms or [None])]
     for _ in range(reps):
         for case in cases:                          # interleaved: ratios measured side by side
             t0 = time.perf_counter()
@@ -103,25 +113,33 @@ def bench_planner(cfg: Config, samples: list[int], controllers: list[str], reps:
                          "rays": p.visibility_rays, "points": p.visibility_points,
                          "surface_estimator": p.surface_estimator, "reps": reps,
                          "va_kernel": native.resolve(p.va_kernel),
-                         "rollout_kernel": native.resolve(p.rollout_kernel)},
+                         "rollout_kernel": native.resolve(p.rollout_kernel),
+                         "forms": forms or "configured"},
             "cases": [c.row() for c in cases]}
 
 
 def planner_table(result: dict[str, Any]) -> str:
     """`vamppi bench planner`'s result as a markdown table."""
     rows = result["cases"]
-    det = {r["samples"]: r["median_ms"] for r in rows if r["controller"] == "deterministic"}
+    det = {(r["samples"], r.get("forms")): r["median_ms"] for r in rows
+           if r["controller"] == "deterministic"}
+    native = {(r["controller"], r["samples"]): r["median_ms"] for r in rows
+              if r.get("forms") == "native/native"}
 
     def ratio(r: dict[str, Any]) -> str:
-        return (f"{r['median_ms'] / det[r['samples']]:.2f}"
-                if r["controller"] == "va" and r["samples"] in det else "")
+        d = det.get((r["samples"], r.get("forms")))
+        return f"{r['median_ms'] / d:.2f}" if r["controller"] == "va" and d else ""
+
+    def to_native(r: dict[str, Any]) -> str:
+        n = native.get((r["controller"], r["samples"]))
+        return f"{r['median_ms'] / n:.2f}" if n and r.get("forms") != "native/native" else ""
     return markdown_table(
         f"planner, one iteration: {result['device']} ({result['backend']}, jax {result['jax']})",
-        ["controller", "K", "median ms", "p95 ms", "min ms", "va / det", "compile s",
-         "memory MB"],
-        [[r["controller"], r["samples"], f"{r['median_ms']:.1f}", f"{r['p95_ms']:.1f}",
-          f"{r['min_ms']:.1f}", ratio(r), f"{r['compile_s']:.1f}", f"{r['peak_mem_mb']:.0f}"]
-         for r in rows])
+        ["controller", "K", "forms", "median ms", "p95 ms", "min ms", "va / det",
+         "/ native", "compile s", "memory MB"],
+        [[r["controller"], r["samples"], r.get("forms", ""), f"{r['median_ms']:.1f}",
+          f"{r['p95_ms']:.1f}", f"{r['min_ms']:.1f}", ratio(r), to_native(r),
+          f"{r['compile_s']:.1f}", f"{r['peak_mem_mb']:.0f}"] for r in rows])
 
 
 def bench_mapper(cfg: Config, reps: int, sizes: tuple[tuple[int, int], ...] = ((0, 0), (320, 240))

@@ -30,7 +30,8 @@ def table(result: dict[str, Any]) -> str:
 
 def main(cfg: Config, what: str, samples: list[int], controllers: list[str], reps: int,
          as_json: bool, overrides: list[str] = (), duration_s: float = 30.0,
-         config_path: str | None = None, record: str | None = None) -> int:
+         config_path: str | None = None, record: str | None = None,
+         forms: list[str] | None = None) -> int:
     if what == "pipeline":
         result = bus.bench_pipeline(cfg, list(overrides), samples, controllers, duration_s,
                                 config_path, record)
@@ -41,7 +42,7 @@ def main(cfg: Config, what: str, samples: list[int], controllers: list[str], rep
     elif what == "peer":
         result = peer.bench_peer(cfg, samples, reps)
     elif what == "planner":
-        result = kernels.bench_planner(cfg, samples, controllers, reps)
+        result = kernels.bench_planner(cfg, samples, controllers, reps, forms)
     elif what == "mapper":
         result = kernels.bench_mapper(cfg, reps)
     elif what == "bus":

@@ -303,7 +303,8 @@ def cmd_bench(args: argparse.Namespace, cfg: Config) -> int:
     try:
         return bench.main(cfg, args.what, parse_list(samples, int), parse_list(controllers),
                           reps, args.json, overrides_from_args(args), args.duration,
-                          args.config, args.record)
+                          args.config, args.record,
+                          parse_list(args.forms) if args.forms else None)
     except MissingExtra as exc:
         print(f"vamppi bench {args.what}: {exc}", file=sys.stderr)
         return 2
@@ -807,6 +808,9 @@ def _tool_commands(sub: Any) -> None:
                    help="pipeline: record each case (vamppi timing analyses the same run)")
     p.add_argument("--reps", type=int, default=None,
                    help="timed repetitions per case (default 20; view: episodes per case, 3)")
+    p.add_argument("--forms", help="planner: the kernels' forms side by side, e.g. "
+                                   "native,jax (each sets planner.va_kernel and "
+                                   "planner.rollout_kernel; default: as configured)")
     p.add_argument("--json", action="store_true", help="one JSON document instead of a table")
     add_config_args(p, shorthands=False)
     p.set_defaults(func=cmd_bench)
