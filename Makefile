@@ -8,7 +8,7 @@ BIN := $(VENV)/bin
 comma := ,
 STAMP := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 
-.PHONY: demo test lint certs clean native
+.PHONY: demo test lint certs clean native bench-gpu
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV) || python3 -m venv $(VENV)
@@ -27,6 +27,11 @@ demo: native
 test: native
 	$(BIN)/ruff check common services deploy tests
 	$(BIN)/python -m pytest -q tests
+
+# the GPU figures (deploy/bench/gpu.py): a few minutes on a lent GPU machine, with
+# EXTRAS=test,cluster,cuda; BENCH_GPU_ARGS=--quick checks it anywhere in a minute or two
+bench-gpu: native
+	$(BIN)/python -m deploy.bench.gpu --out bench-gpu $(BENCH_GPU_ARGS)
 
 certs: $(STAMP)  # the CA and a certificate per role where vamppi looks (docs/security.md)
 	$(BIN)/vamppi certs $${XDG_CONFIG_HOME:-$$HOME/.config}/vamppi/certs
