@@ -67,3 +67,14 @@ def test_a_second_process_loads_the_solver_from_the_cache(tmp_path):
     assert hits() == 0                      # compiled, and stored
     assert any("solve" in e.name for e in (tmp_path / "cache").iterdir())
     assert hits() == 1                      # loaded by a fresh process
+
+
+def test_processes_sharing_a_gpu_neither_preallocate_nor_exceed_their_share():
+    from common.memory import GPU_HEADROOM, PIPELINE_PROCESSES, share_device
+    env = {}
+    assert share_device(PIPELINE_PROCESSES, env) == env
+    assert env["XLA_PYTHON_CLIENT_PREALLOCATE"] == "false"
+    assert PIPELINE_PROCESSES * float(env["XLA_PYTHON_CLIENT_MEM_FRACTION"]) <= GPU_HEADROOM
+    mine = {"XLA_PYTHON_CLIENT_MEM_FRACTION": "0.5"}           # the user's own setting wins
+    assert share_device(2, mine) == {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
+    assert mine["XLA_PYTHON_CLIENT_MEM_FRACTION"] == "0.5"
