@@ -54,10 +54,17 @@ def device_share(processes: int) -> dict[str, str]:
             "XLA_PYTHON_CLIENT_MEM_FRACTION": f"{share:.3f}"}
 
 
+SHARED_ENV = "VAMPPI_GPU_SHARED"     # the settings vamppi chose (not the user), by name
+
+
 def share_device(processes: int, environ: dict[str, str] | None = None) -> dict[str, str]:
-    """`device_share(processes)` into `environ` (default os.environ), except what it holds
-    already (the user's own settings win); returns what it set."""
+    """`device_share(processes)` into `environ` (default os.environ): what the user set
+    stays, what a vamppi parent chose for its own share (named in SHARED_ENV) is
+    replaced; returns what it set."""
     env = os.environ if environ is None else environ
-    set_ = {k: v for k, v in device_share(processes).items() if k not in env}
-    env.update(set_)
+    ours = set(filter(None, env.get(SHARED_ENV, "").split(",")))
+    set_ = {k: v for k, v in device_share(processes).items() if k in ours or k not in env}
+    if set_:
+        env.update(set_)
+        env[SHARED_ENV] = ",".join(sorted(ours | set(set_)))
     return set_

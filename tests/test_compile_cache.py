@@ -72,9 +72,13 @@ def test_a_second_process_loads_the_solver_from_the_cache(tmp_path):
 def test_processes_sharing_a_gpu_neither_preallocate_nor_exceed_their_share():
     from common.memory import GPU_HEADROOM, PIPELINE_PROCESSES, share_device
     env = {}
-    assert share_device(PIPELINE_PROCESSES, env) == env
+    share_device(1, env)                                       # a parent's own share ...
+    set_ = share_device(PIPELINE_PROCESSES, env)               # ... its children's replace it
+    assert set_ and all(env[k] == v for k, v in set_.items())
     assert env["XLA_PYTHON_CLIENT_PREALLOCATE"] == "false"
     assert PIPELINE_PROCESSES * float(env["XLA_PYTHON_CLIENT_MEM_FRACTION"]) <= GPU_HEADROOM
     mine = {"XLA_PYTHON_CLIENT_MEM_FRACTION": "0.5"}           # the user's own setting wins
     assert share_device(2, mine) == {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
+    assert mine["XLA_PYTHON_CLIENT_MEM_FRACTION"] == "0.5"
+    assert share_device(4, mine) == {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
     assert mine["XLA_PYTHON_CLIENT_MEM_FRACTION"] == "0.5"

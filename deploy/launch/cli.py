@@ -183,8 +183,6 @@ def cmd_service(args: argparse.Namespace, cfg: Config) -> int:
         die_with_parent()
         when_orphaned(parent_gone)
     os.environ.pop(PARENT_ENV, None)
-    # before JAX starts: a pipeline's services share one GPU, none preallocating it
-    share_device(PIPELINE_PROCESSES)
     cfg = with_identity(cfg, args.name, args.instance)
     from common.bus import WorldMismatch
     module = importlib.import_module(SERVICE_MAINS[args.name])
@@ -840,6 +838,9 @@ def main(argv: list[str] | None = None) -> Any:
     _setup_logging(args.verbose)
     keep_large_buffers()
     compile_cache.enable()
+    # before JAX starts: no vamppi process preallocates a GPU; a pipeline's services share
+    # one, and a benchmark or an experiment beside them takes only what it uses
+    share_device(PIPELINE_PROCESSES if args.func is cmd_service else 1)
     try:
         cfg = config_from_args(args)
     except ConfigError as exc:

@@ -102,11 +102,11 @@ def connect(address: str, jobs: int) -> bool:
         import ray
     except ImportError as exc:
         raise ClusterError("--cluster needs Ray: pip install -e '.[cluster]'") from exc
-    from common.memory import device_share
+    from common.memory import share_device
     if ray.is_initialized():
         return False
     # the workers share a GPU, if their node has one; settings of the user's own win
-    env = {k: v for k, v in device_share(jobs).items() if k not in os.environ}
+    env = share_device(jobs, dict(os.environ))
     if address != "local":
         check_reachable(address)
     try:
