@@ -85,13 +85,13 @@ def test_lockstep_swap_fail_over_and_rogues_leave_the_episode_bit_identical(tmp_
 
 
 def test_lockstep_swaps_to_other_configurations_complete_the_episode(tmp_path):
-    """deterministic -> va, then K = 400 -> 1000, in one episode; the recording names the
+    """deterministic -> va, then K = 64 -> 256, in one episode; the recording names the
     tick of each handover."""
-    base = [*LOCK, "planner.samples=400"]
+    base = LOCK
     with Pipeline(base, tmp_path) as p:
         first = planner(p, "1", [*base, 'planner.controller="va"'], "--role", "candidate",
                         "--take-over-at", "1.5")
-        second = planner(p, "2", [*base, 'planner.controller="va"', "planner.samples=1000"],
+        second = planner(p, "2", [*base, 'planner.controller="va"', "planner.samples=256"],
                          "--role", "candidate", "--take-over-at", "4.0")
         p.wait(lambda: {b.header.source for _, b in p.beats if b.status == "ready"}
                >= {"planner/1", "planner/2"}, 300, "both candidates warm")

@@ -362,14 +362,15 @@ def cmd_health(args: argparse.Namespace, cfg: Config) -> int:
 
 def cmd_experiment(args: argparse.Namespace, cfg: Config) -> int:
     from deploy.analysis.summary import write_summary
-    from deploy.sim.cluster import ClusterError
+    from deploy.sim.cluster import ClusterError, on_cluster
     from deploy.sim.experiment import ExperimentError, expand_scenarios, experiment, parse_list
     _interrupt_on_sigterm()
     try:
         runs = experiment(cfg, expand_scenarios(parse_list(args.scenarios)),
                           parse_list(args.controllers), parse_list(args.samples_list, int),
                           args.runs, args.seed_base, Path(args.out), progress=not args.quiet,
-                          jobs=args.jobs, cluster=args.cluster)
+                          jobs=args.jobs,
+                          runner=on_cluster(args.cluster, args.jobs) if args.cluster else None)
         summary = write_summary(cfg, runs, Path(args.out), plots=not args.no_plots)
     except (ExperimentError, ClusterError) as exc:
         print(f"vamppi experiment: {exc}", file=sys.stderr)

@@ -10,7 +10,8 @@ record does not depend on where it ran, except its solve and wall times (tested)
   `ray://HOST:10001` (Ray Client).
 - Every node must hold the same vamppi (its sources are digested: a worker whose digest
   differs refuses the run), and the scenario files at the same paths (each run's scenario
-  digest is checked on the worker).
+  digest is checked on the worker; a relative path is taken from the driver's directory
+  where the node has one of that name).
 - A worker that dies (killed, out of memory, its node lost) costs its run nothing: Ray
   runs the task again on another worker, up to `RETRIES` times; a run whose code raises is
   not retried (it would raise again) and stops the experiment, the finished runs kept.
@@ -31,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from common.config import Config
+from deploy.sim.experiment import Runner, run_one, run_record
 
 log = logging.getLogger(__name__)
 
@@ -60,12 +62,15 @@ def source_digest() -> str:
 _CORES: dict[tuple, Any] = {}
 
 
-def run_task(cfg: Config, key: tuple, digest: str, scenario_digest: str | None
-             ) -> dict[str, Any]:
-    """One run on a Ray worker: its record (experiment.run_record)."""
+def run_task(cfg: Config, key: tuple, digest: str, scenario_digest: str | None,
+             cwd: str | None = None) -> dict[str, Any]:
+    """One run on a Ray worker: its record (experiment.run_record). In the driver's
+    directory `cwd` where the node has it, so that a scenario file named by a relative
+    path is the same file."""
     from common import compile_cache
     from common.scenarios import build_scenario
-    from deploy.sim.experiment import run_one, run_record
+    if cwd and os.path.isdir(cwd):
+        os.chdir(cwd)
     if digest != source_digest():
         raise ClusterError(f"worker {os.uname().nodename}: its vamppi (sources {source_digest()}"
                            f") is not the driver's ({digest}): install the same commit on "
@@ -135,7 +140,8 @@ def records_on_cluster(cfg: Config, todo: list[tuple], address: str, jobs: int
         cfg_ref, digest = ray.put(cfg), source_digest()
         worlds = {s: build_scenario(s, cfg.episode.scenario_seed, cfg.mapper.resolution_m,
                                     cfg.episode.layout).digest for s in {k[0] for k in todo}}
-        pending = {task.remote(cfg_ref, key, digest, worlds[key[0]]): key for key in todo}
+        pending = {task.remote(cfg_ref, key, digest, worlds[key[0]], os.getcwd()): key
+                   for key in todo}
         try:
             while pending:
                 done, _ = ray.wait(list(pending), num_returns=1)
@@ -155,3 +161,8 @@ def records_on_cluster(cfg: Config, todo: list[tuple], address: str, jobs: int
     finally:
         if started:
             ray.shutdown()
+
+
+def on_cluster(address: str, jobs: int) -> Runner:
+    """experiment()'s runner for the Ray cluster at `address` (`records_on_cluster`)."""
+    return lambda cfg, todo: records_on_cluster(cfg, todo, address, jobs)

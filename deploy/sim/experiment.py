@@ -21,7 +21,7 @@ Output directory:
   summary.*, *.png  what the runs show (deploy.analysis.summary), written by the
                  command after the runs
 
-With `cluster`, the runs are tasks on a Ray cluster (deploy/sim/cluster.py). With
+With a `runner`, the runs are its (deploy/sim/cluster.py: tasks on a Ray cluster). With
 `jobs` > 1 the runs are spread over that many worker processes (each its own
 JAX runtime and cores, pinned to its share of this process's CPUs when there are
 enough); this process alone writes runs.jsonl, a record as each run ends. A run's
@@ -37,7 +37,7 @@ import logging
 import multiprocessing
 import os
 import signal
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -250,11 +250,15 @@ def _records_parallel(cfg: Config, todo: list[tuple], jobs: int) -> Iterator[dic
         pool.join()
 
 
+# what runs a list of runs elsewhere, e.g. on a cluster: (cfg, todo) -> their records
+Runner = Callable[[Config, list[tuple]], Iterator[dict[str, Any]]]
+
+
 def experiment(cfg: Config, scenarios: list[str], controllers: list[str], samples: list[int],
                runs: int, seed: int, out: Path, progress: bool = True, jobs: int = 1,
-               cluster: str | None = None) -> list[dict[str, Any]]:
+               runner: Runner | None = None) -> list[dict[str, Any]]:
     """Run what is missing from `out/runs.jsonl` (in `jobs` worker processes when more
-    than 1; on the Ray cluster at `cluster` if given: deploy/sim/cluster.py) and return
+    than 1; by `runner` if given: deploy/sim/cluster.py's on a Ray cluster) and return
     every run there; deploy.analysis.summary writes what they show."""
     out.mkdir(parents=True, exist_ok=True)
     runs_path = out / "runs.jsonl"
@@ -284,9 +288,8 @@ def experiment(cfg: Config, scenarios: list[str], controllers: list[str], sample
     todo = [(s, c, k, seed + i) for i in range(runs) for s in scenarios for c in controllers
             for k in samples if (s, c, k, seed + i) not in done]
     log.info("%d run(s) to do, %d already in %s", len(todo), len(done), runs_path)
-    if cluster and todo:
-        from deploy.sim.cluster import records_on_cluster
-        records = records_on_cluster(cfg, todo, cluster, jobs)
+    if runner is not None and todo:
+        records = runner(cfg, todo)
     elif jobs <= 1 or len(todo) <= 1:
         records = _records_serial(cfg, todo)
     else:
