@@ -58,8 +58,10 @@ def source_digest() -> str:
     return h.hexdigest()[:16]
 
 
-# a worker process's cores cache (`run_one`), kept from task to task
+# a worker process's own, kept from task to task: its cores cache (`run_one`) and the
+# worlds whose digest it has checked
 _CORES: dict[tuple, Any] = {}
+_CHECKED: set[str] = set()
 
 
 def run_task(cfg: Config, key: tuple, digest: str, scenario_digest: str | None,
@@ -67,7 +69,6 @@ def run_task(cfg: Config, key: tuple, digest: str, scenario_digest: str | None,
     """One run on a Ray worker: its record (experiment.run_record). In the driver's
     directory `cwd` where the node has it, so that a scenario file named by a relative
     path is the same file."""
-    from common import compile_cache
     from common.scenarios import build_scenario
     if cwd and os.path.isdir(cwd):
         os.chdir(cwd)
@@ -75,16 +76,23 @@ def run_task(cfg: Config, key: tuple, digest: str, scenario_digest: str | None,
         raise ClusterError(f"worker {os.uname().nodename}: its vamppi (sources {source_digest()}"
                            f") is not the driver's ({digest}): install the same commit on "
                            "every node")
-    if scenario_digest is not None:
+    if scenario_digest is not None and scenario_digest not in _CHECKED:
         scn = build_scenario(key[0], cfg.episode.scenario_seed, cfg.mapper.resolution_m,
                              cfg.episode.layout)
         if scn.digest != scenario_digest:
             raise ClusterError(f"worker {os.uname().nodename}: scenario {key[0]} is another "
                                f"world there (digest {scn.digest}, the driver's "
                                f"{scenario_digest})")
-    if not _CORES:
-        compile_cache.enable()
+        _CHECKED.add(scenario_digest)
+    _worker_start()
     return run_record(*run_one(cfg, key, _CORES))
+
+
+@cache
+def _worker_start() -> None:
+    """Once per worker process, before its first run: the JAX compilation cache."""
+    from common import compile_cache
+    compile_cache.enable()
 
 
 def check_reachable(address: str, timeout_s: float = 5.0) -> None:
