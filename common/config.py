@@ -126,6 +126,7 @@ class PlannerConfig:
     brake_samples: int = _rng(0, 64)
     swerve_samples: int = _rng(0, 64)
     advance_samples: int = _rng(0, 64)
+    effective_update: bool = _rng()
     rollouts_published: int = _rng(0, 1000)
     footprint_points: int = _rng(2, 64)
     footprint_arrays: int = _rng(2, 16)

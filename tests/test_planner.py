@@ -505,3 +505,42 @@ def test_advanced_nominals_leave_a_plan_that_puts_off_its_start():
         moved[a] = float(np.asarray(out.controls)[:20, 1].mean())
     # advanced by 4 steps: 4 of the first 20 at 3000 N, 600 N on average
     assert moved[0] < 50.0 and moved[2] > 450.0, moved
+
+
+def test_the_felt_force_is_the_model_s_on_random_speeds_and_forces(rng):
+    """`mppi.felt` against float64: a drive force in full, a brake times tanh(V / eps) at
+    each step's start speed, the steering untouched; the paper's update keeps the commands."""
+    k, n = 64, PP.horizon
+    states = np.zeros((k, n + 1, 6), np.float32)
+    states[..., S.V] = rng.uniform(0.0, 1.0, (k, n + 1)) ** 2          # many near standstill
+    applied = np.stack([rng.uniform(-0.6, 0.6, (k, n)),
+                        rng.uniform(-6000.0, 5000.0, (k, n))], axis=-1).astype(np.float32)
+    got = np.asarray(mppi.felt(PP, jnp.asarray(states), jnp.asarray(applied)))
+    v, f = states[:, :-1, S.V].astype(np.float64), applied[..., 1].astype(np.float64)
+    want = np.where(f >= 0.0, f, f * np.tanh(v / CFG.vehicle.brake_speed_eps_mps))
+    np.testing.assert_array_equal(got[..., 0], applied[..., 0])
+    np.testing.assert_allclose(got[..., 1], want, rtol=3e-7, atol=1e-3)
+    paper = dataclasses.replace(PP, effective_update=False)
+    np.testing.assert_array_equal(np.asarray(mppi.felt(paper, jnp.asarray(states),
+                                                       jnp.asarray(applied))), applied)
+
+
+def test_a_nominal_that_brakes_a_stopped_vehicle_is_left_by_the_felt_update():
+    """A stopped vehicle on open, known ground, the goal 40 m ahead, its nominal at the brake
+    limit (where offroad's VA-MPPI stood for 16 s): every sample whose force stays below
+    zero has the same rollout, so the paper's update (commanded forces) keeps braking tick
+    after tick; averaging the forces felt, the nominal drives off within a few ticks."""
+    m = flat_map()
+    goal = np.array([60.0, 40.0, 0.0])
+    x0 = np.array([0, 0, 0, 20.0, 40.0, 0.0])
+    brake = np.tile([0.0, CFG.vehicle.force_min_n], (PP.horizon, 1)).astype(np.float32)
+    first = {}
+    for felt in (False, True):
+        params = dataclasses.replace(PP, effective_update=felt)
+        qs = mppi.initial_state(params, 0)._replace(nominal=jnp.asarray(brake))
+        u = brake[0]
+        for _ in range(5):                    # five ticks, the vehicle held where it stands
+            qs, out = mppi.solve(params, qs, x0, u, goal, m.mean, m.variance, m.origin, 0.2)
+            u = np.asarray(out.controls)[0]                 # the command the plant applies
+        first[felt] = float(u[1])
+    assert first[False] < -4000.0 and first[True] > 0.0, first

@@ -176,7 +176,8 @@ def probe_config(cfg: Config, scenario: str) -> Config:
                           "planner.samples": PROBE_SAMPLES, "episode.seed": 0,
                           "episode.layout": 0, "episode.scenario_seed": 0,
                           "planner.brake_samples": 0, "planner.swerve_samples": 0,
-                          "planner.advance_samples": 0, "planner.goal_distance": "straight",
+                          "planner.advance_samples": 0, "planner.effective_update": False,
+                          "planner.goal_distance": "straight",
                           "planner.stop_poses": 0})
 
 

@@ -26,6 +26,7 @@ import jax.numpy as jnp
 from services.planner.costs import MapView, rollout_cost
 from services.planner.kernels import query_variance, rollouts, surface_terms
 from services.planner.params import PlannerParams
+from services.plant.dynamics import S, U, effective_force
 
 
 class PlannerState(NamedTuple):
@@ -133,6 +134,19 @@ def advance_sequences(params: PlannerParams, nominal: jax.Array) -> jax.Array:
     return nominal[jnp.minimum(jnp.arange(n)[None] + shifts[:, None], n - 1)]
 
 
+def felt(params: PlannerParams, states: jax.Array, applied: jax.Array) -> jax.Array:
+    """The controls (K, N, 2) the update averages: with `effective_update` (ours) each
+    step's force as the vehicle felt it at the step's start speed (`effective_force`: a
+    brake on a stopped vehicle is none), else as commanded (the paper's). Commanded, a
+    nominal that brakes a stopped vehicle never leaves it: every sample around it whose
+    force stays below zero has the same rollout and cost, and the update keeps their mean;
+    felt, their mean is zero, and a sample that drives can pull the nominal forward."""
+    if not params.effective_update:
+        return applied
+    f = effective_force(params.vehicle, states[:, :-1, S.V], applied[..., U.FXT], jnp)
+    return applied.at[..., U.FXT].set(f)
+
+
 def _iteration(params: PlannerParams, state: PlannerState, x0, u_prev, goal, m: MapView):
     key, sub, mc = jax.random.split(state.key, 3)
     k = params.samples
@@ -165,7 +179,8 @@ def _iteration(params: PlannerParams, state: PlannerState, x0, u_prev, goal, m: 
                                   / params.temperature), 0.0)
     total = jnp.sum(w)
     w = jnp.where(total > 0, w / jnp.where(total > 0, total, 1.0), 0.0)
-    nominal = state.nominal + jnp.einsum("k,kni->ni", w, applied - state.nominal[None])
+    nominal = state.nominal + jnp.einsum("k,kni->ni", w, felt(params, states, applied)
+                                         - state.nominal[None])
     r = params.rollouts_published
     j_mean = jnp.sum(jnp.where(finite, cost, 0.0)) / jnp.maximum(jnp.sum(finite), 1)
     info = (states[:r, :, 3:5], cost[:r], j_min, j_mean)

@@ -28,6 +28,8 @@ class PlannerParams:
     swerve_samples: int                # ... and by full-lock swerves (0: the paper's MPPI)
     advance_samples: int               # ... and by the nominal done sooner (0: the paper's);
                                        # the three as many as K leaves room for
+    effective_update: bool             # the update averages the force the vehicle felt (ours)
+                                       # or the one commanded (False: the paper's)
     rollouts_published: int
     rollout_kernel: str                # jax | native: planner.rollout_kernel resolved
                                        # (services/planner/kernels.py)

@@ -128,6 +128,18 @@ def tire_lateral_force(alpha: Any, fz: Any, p: VehicleConfig, xp: Any = np) -> A
     return p.pacejka_d * fz * xp.sin(p.pacejka_c * xp.arctan(shape))
 
 
+def brake_fade(p: VehicleConfig, V: Any, xp: Any = np) -> Any:
+    """How much of the brake (and of the rolling resistance) acts at speed V: tanh(V / eps),
+    none at standstill."""
+    return xp.tanh(V / p.brake_speed_eps_mps)
+
+
+def effective_force(p: VehicleConfig, V: Any, f: Any, xp: Any = np) -> Any:
+    """The longitudinal force f_xt has on the vehicle at speed V: drive in full, a brake as
+    much as `brake_fade` lets it (a brake on a stopped vehicle is none)."""
+    return xp.maximum(f, 0.0) + xp.minimum(f, 0.0) * brake_fade(p, V, xp)
+
+
 def derivatives(p: VehicleConfig, x: Any, u: Any, xp: Any = np) -> Any:
     """dx/dt for states (..., 6) and controls (..., 2)."""
     V, v, r, psi = x[..., S.V], x[..., S.v], x[..., S.r], x[..., S.PSI]
@@ -135,8 +147,8 @@ def derivatives(p: VehicleConfig, x: Any, u: Any, xp: Any = np) -> Any:
     m, g, L, h, tr = p.mass_kg, p.gravity, p.lf_m + p.lr_m, p.cg_height_m, p.track_m
 
     # longitudinal: drive, brake (opposes motion, fades at standstill), drag, rolling
-    fade = xp.tanh(V / p.brake_speed_eps_mps)
-    f_long = xp.maximum(f, 0.0) + xp.minimum(f, 0.0) * fade
+    fade = brake_fade(p, V, xp)
+    f_long = effective_force(p, V, f, xp)
     drag = 0.5 * p.air_density * p.drag_coefficient * p.frontal_area_m2 * V * xp.abs(V)
     rolling = m * g * p.rolling_coefficient * fade
     ax = (f_long - drag - rolling) / m
