@@ -29,8 +29,10 @@ def random_terrain(rng, n=200, res=0.2):
     return z.astype(np.float32)
 
 
-def reference_depth(hm, origin, res, pos, rot, dir_cam, range_m, step=0.002):
-    """March each ray in float64 with a 2 mm step; bisect the first crossing."""
+def reference_crossings(hm, origin, res, pos, rot, dir_cam, range_m, step=0.002):
+    """March a ray in float64 with a 2 mm step; bisect every crossing into the ground.
+    [(depth, metres of ray above the ground before it and under it after)], nearest
+    first."""
     d = rot @ dir_cam
     hm64 = hm.astype(np.float64)
     n = hm.shape[0]
@@ -49,14 +51,20 @@ def reference_depth(hm, origin, res, pos, rot, dir_cam, range_m, step=0.002):
               & (p[:, 1] >= origin[1]) & (p[:, 1] < origin[1] + n * res))
     ground = bilinear(hm64, p[:, 0], p[:, 1], origin, res)
     g = np.where(inside, p[:, 2] - ground, np.inf)
-    below = np.nonzero((g[1:] <= 0) & (g[:-1] > 0) & inside[1:])[0]
-    if len(below) == 0:
-        return 0.0
-    lo, hi = ts[below[0]], ts[below[0] + 1]
-    for _ in range(40):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if gap(mid) > 0 else (lo, mid)
-    return 0.5 * (lo + hi) * dir_cam[2]
+    under = g <= 0
+    crossings = []
+    for k in np.nonzero(under[1:] & ~under[:-1] & inside[1:])[0]:
+        lo, hi = ts[k], ts[k + 1]
+        for _ in range(40):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if gap(mid) > 0 else (lo, mid)
+        t = 0.5 * (lo + hi)
+        out = np.nonzero(~under[k + 1:])[0]
+        end = ts[k + 1 + out[0]] if len(out) else ts[-1]
+        was_under = np.nonzero(under[:k + 1])[0]
+        start = ts[was_under[-1] + 1] if len(was_under) else ts[0]
+        crossings.append((t * dir_cam[2], min(t - start, end - t)))
+    return crossings
 
 
 @pytest.mark.parametrize("kernel", KERNELS)
@@ -75,19 +83,26 @@ def test_depth_matches_a_brute_force_float64_march(rng, kernel):
         assert depth.shape == (cam.height_px, cam.width_px) and depth.dtype == np.float32
         for i in rng.choice(cam.height_px * cam.width_px, 120, replace=False):
             r, c = divmod(int(i), cam.width_px)
-            ref = reference_depth(hm, origin, 0.2, pos, rot, dirs[r, c], cam.range_m)
+            crossings = reference_crossings(hm, origin, 0.2, pos, rot, dirs[r, c], cam.range_m)
+            # a crossing with less than one march step of ray above the ground before it
+            # or under it after (a ray grazing an edge, or leaving a block the camera is
+            # in for a moment) may be stepped over: the march may land on any crossing up
+            # to the first it cannot skip, or miss when there is none; the secant is
+            # within 2 cm
+            thick = next((k for k, (_, run) in enumerate(crossings)
+                          if run >= cam.march_step_m), None)
+            allowed = crossings if thick is None else crossings[:thick + 1]
             got = float(depth[r, c])
-            if ref == 0.0 or got == 0.0:
-                misses += 1
-                agree += (ref == 0.0) == (got == 0.0)
-                continue
-            hits += 1
-            # a crossing the march skipped (a grazing ray over an edge) is allowed
-            # to land further along the ray; elsewhere the secant is within 2 cm
-            agree += abs(got - ref) < 0.02 + 2e-3 * ref
+            hits += bool(crossings)
+            misses += not crossings
+            if got == 0.0:
+                agree += thick is None
+            else:
+                agree += any(abs(got - ref) < 0.02 + 2e-3 * ref for ref, _ in allowed)
     total = hits + misses
     assert hits > 100
-    assert agree >= 0.98 * total, f"{total - agree} of {total} rays disagree"
+    # every ray: none disagreed of 216,360 (601 seeds, native) and 21,960 (61, jax)
+    assert agree == total, f"{total - agree} of {total} rays disagree"
 
 
 @pytest.mark.skipif(not native.available(), reason="the native ray caster does not build here")
