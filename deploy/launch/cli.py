@@ -6,6 +6,7 @@
     vamppi health --connect tcp/HOST:7447       live instances and their counters
     vamppi view [--connect tcp/HOST:7447]       the bus live in Foxglove (ws://localhost:8765)
     vamppi run ...           one episode in this process, no bus (the lockstep reference)
+    vamppi plans --at T ...  the plan at T s of such an episode against the same plan sooner
     vamppi experiment --scenario alleyway,offroad --controllers va,deterministic,prescient \\
         --samples 400,1000,4000 --runs 100 --seed 0 --out DIR
     vamppi config ...        print the effective configuration as JSON
@@ -20,7 +21,7 @@ Where each command's code is: up (deploy/launch/up.py), swap (launch/swap.py), c
 (launch/certs.py), service, router, health (here, around common.bus); record and recover
 (recording/record.py), replay, timing, export-foxglove, view (recording/replay.py,
 timing.py, foxglove.py, view.py); run (sim/runner.py), experiment (sim/experiment.py, its summary
-analysis/summary.py), scenario generate and set (sim/generate.py); reveal, collisions
+analysis/summary.py), scenario generate and set (sim/generate.py); reveal, collisions, plans
 (analysis/); bench WHAT (bench/main.py).
 """
 
@@ -246,6 +247,19 @@ def cmd_run(args: argparse.Namespace, cfg: Config) -> int:
     result = run_episode(cfg)
     print(json.dumps(result.summary(cfg)), flush=True)
     return 0 if result.outcome == "success" else 1
+
+
+def cmd_plans(args: argparse.Namespace, cfg: Config) -> int:
+    """The planner's plan at one instant of an in-process episode, priced beside the same plan
+    carried out sooner (deploy/analysis/plans.py)."""
+    from deploy.analysis.plans import plans, table
+    try:
+        rows = plans(cfg, args.at)
+    except ValueError as exc:
+        print(f"vamppi plans: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps(rows, indent=1) if args.json else table(rows))
+    return 0
 
 
 def cmd_scenario(args: argparse.Namespace, cfg: Config) -> int:
@@ -722,6 +736,14 @@ def _simulation_commands(sub: Any) -> None:
     p = sub.add_parser("run", help="one lockstep episode in-process, without the bus")
     add_config_args(p)
     p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("plans", help="the plan at one instant of an in-process episode, priced "
+                                     "beside the same plan carried out sooner")
+    p.add_argument("--at", type=float, required=True, metavar="SECONDS",
+                   help="the instant (simulated time) whose plan is priced")
+    p.add_argument("--json", action="store_true")
+    add_config_args(p)
+    p.set_defaults(func=cmd_plans)
 
     p = sub.add_parser("experiment", help="the paper's Monte-Carlo comparison, in-process")
     p.add_argument("--scenario", dest="scenarios", default="alleyway,offroad",

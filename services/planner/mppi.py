@@ -4,8 +4,8 @@ One iteration: sample K control sequences around the nominal (sample 0 is the
 nominal itself), roll each out through the plant's own model (`kernels.rollouts`),
 let the controller supply the variance each rollout meets (`kernels.surface_terms`:
 where VA-MPPI's visibility-aware update comes in), price every rollout
-(`costs.rollout_cost`), weight by exp(-(J - J_min) / lambda) and move the nominal by
-the weighted noise. The kernels' forms (JAX or C++) are services/planner/kernels.py's
+(`costs.rollout_cost`; these three are `price`), weight by exp(-(J - J_min) / lambda)
+and move the nominal by the weighted noise. The kernels' forms (JAX or C++) are services/planner/kernels.py's
 to choose; nothing here knows which runs.
 
     step(params, state, inputs) -> (state, outputs)
@@ -147,9 +147,24 @@ def felt(params: PlannerParams, states: jax.Array, applied: jax.Array) -> jax.Ar
     return applied.at[..., U.FXT].set(f)
 
 
+def price(params: PlannerParams, m: MapView, x0: jax.Array, u_prev: jax.Array, goal: jax.Array,
+          candidates: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Control sequences (C, N, 2) rolled out from x0 and priced as an iteration prices its
+    samples: states (C, N+1, 6), the controls as applied (C, N, 2) and the cost terms (C, 6)
+    (`costs.TERMS`); `key` for the Monte-Carlo surface estimate (deploy/analysis/plans.py
+    prices a plan's variants with it)."""
+    states, applied, xdots = rollouts(params, x0, u_prev, candidates)
+    qvar, expected = surface_terms(params, m, states)
+    terms = jax.vmap(rollout_cost, in_axes=(None, 0, 0, None, None,
+                                            None if qvar is None else 0, 0,
+                                            None if expected is None else 0))(
+        params.cost, states, xdots, goal, m, qvar,
+        jax.random.split(key, candidates.shape[0]), expected)
+    return states, applied, terms
+
+
 def _iteration(params: PlannerParams, state: PlannerState, x0, u_prev, goal, m: MapView):
     key, sub, mc = jax.random.split(state.key, 3)
-    k = params.samples
     eps = sample_noise(params, sub)
     eps = eps.at[0].set(0.0)                          # sample 0: the nominal itself
     candidates = state.nominal[None] + eps
@@ -163,13 +178,7 @@ def _iteration(params: PlannerParams, state: PlannerState, x0, u_prev, goal, m: 
     if params.advance_samples:                        # then A advanced nominals
         candidates = candidates.at[a0:a0 + params.advance_samples].set(
             advance_sequences(params, state.nominal))
-    states, applied, xdots = rollouts(params, x0, u_prev, candidates)
-
-    qvar, expected = surface_terms(params, m, states)
-    terms = jax.vmap(rollout_cost, in_axes=(None, 0, 0, None, None,
-                                            None if qvar is None else 0, 0,
-                                            None if expected is None else 0))(
-        params.cost, states, xdots, goal, m, qvar, jax.random.split(mc, k), expected)
+    states, applied, terms = price(params, m, x0, u_prev, goal, candidates, mc)
     cost = jnp.sum(terms, axis=-1)
     finite = jnp.isfinite(cost)
     cost = jnp.where(finite, cost, jnp.inf)
