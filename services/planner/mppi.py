@@ -5,8 +5,8 @@ nominal itself), roll each out through the plant's own model (`kernels.rollouts`
 let the controller supply the variance each rollout meets (`kernels.surface_terms`:
 where VA-MPPI's visibility-aware update comes in), price every rollout
 (`costs.rollout_cost`; these three are `price`), weight by exp(-(J - J_min) / lambda)
-and move the nominal by the weighted noise. The kernels' forms (JAX or C++) are services/planner/kernels.py's
-to choose; nothing here knows which runs.
+and move the nominal by the weighted noise. The kernels' forms (JAX or C++) are
+services/planner/kernels.py's to choose; nothing here knows which runs.
 
     step(params, state, inputs) -> (state, outputs)
 
