@@ -13,8 +13,8 @@
    the authority and epoch in force); the plant grants it at the next tick boundary, its
    first command continuing the old plan, and the replaced planner retires (or, with
    `keep_old`, stands by).
-5. If it does not start, warm up or get the authority within `timeout_s`, it is stopped
-   and the old one keeps control; the command says why.
+5. If it does not start, warm up or get the authority within `timeout_s`, or the episode
+   ends first, it is stopped and the old one keeps control; the command says why.
 """
 
 from __future__ import annotations
@@ -182,6 +182,9 @@ def swap(cfg: Config, instance: str | None, overrides: list[str], config_path: s
                 if proc is not None and proc.poll() is not None:
                     raise fail(f"{source} exited with code {proc.returncode} before it was "
                                "ready")
+                if watch.state is not None and watch.state.outcome:
+                    raise fail(f"the episode ended ({watch.state.outcome}) before {source} "
+                               "was warm")
                 if time.monotonic() > deadline:
                     raise fail(f"{source} not warm after {timeout_s:.0f} s")
                 time.sleep(0.05)
