@@ -1,7 +1,7 @@
 """JAX's persistent compilation cache, for every vamppi process.
 
-Compiling the planner's solver takes 5 to 10 s on a 2-core CPU, the sensor's
-and the mapper's programs about a second each; every service start, planner
+Compiling the planner's solver takes 5 to 7 s on a 2-core CPU (docs/running.md),
+the sensor's and the mapper's programs about a second each; every service start, planner
 hot swap, experiment, replay and test process paid it again. JAX can keep
 compiled XLA programs on disk, keyed by the program, its compile options, the
 JAX and jaxlib versions and the device, so a stale entry is never used: a later
