@@ -41,9 +41,10 @@ def variants(nominal: np.ndarray, brake_force: float, shifts: tuple[int, ...] = 
     """(name, controls (N, 2)): the nominal, then per k in `shifts` the nominal k steps sooner
     (its last control held), and that with the force 0 or `brake_force` from each step of
     `tails` on."""
+    n = nominal.shape[0]
     out = [("nominal", nominal)]
     for k in shifts:
-        adv = np.array(mppi.sooner(jnp.asarray(nominal), k))
+        adv = nominal[np.minimum(np.arange(n) + k, n - 1)]
         out.append((f"{k} sooner", adv))
         for s in tails:
             for what, force in (("coasting", 0.0), ("braking", brake_force)):

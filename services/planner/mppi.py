@@ -56,16 +56,13 @@ def planning_map(params: PlannerParams, truth: Any, mean: Any, variance: Any
     return (truth, variance) if params.controller == "prescient" else (mean, variance)
 
 
-def sooner(nominal: jax.Array, ticks: Any) -> jax.Array:
-    """The nominal (N, 2) carried out `ticks` steps sooner, its last control held; `ticks`
-    a count, or (A,) counts for (A, N, 2)."""
+@jax.jit
+def _shift(nominal: jax.Array, ticks: jax.Array) -> jax.Array:
+    """The nominal shifted by `ticks` steps, the last control repeated: one compiled
+    gather for every shift (eager slicing compiled anew for each count, 0.1 s the first
+    time a standby took over after a gap of two ticks)."""
     n = nominal.shape[0]
-    return nominal[jnp.minimum(jnp.arange(n) + jnp.asarray(ticks)[..., None], n - 1)]
-
-
-# one compiled gather for every shift (eager slicing compiled anew for each count, 0.1 s
-# the first time a standby took over after a gap of two ticks)
-_shift = jax.jit(sooner)
+    return nominal[jnp.minimum(jnp.arange(n) + ticks, n - 1)]
 
 
 def advance(state: PlannerState, ticks: int) -> PlannerState:
@@ -132,7 +129,9 @@ def advance_sequences(params: PlannerParams, nominal: jax.Array) -> jax.Array:
     whose plan accelerates only later) is only ever perturbed by white noise that averages
     out over a few steps, so MPPI keeps putting it off even when doing it now costs less
     (docs/planner.md)."""
-    return sooner(nominal, 2 * jnp.arange(1, params.advance_samples + 1))
+    n = nominal.shape[0]
+    shifts = 2 * jnp.arange(1, params.advance_samples + 1)
+    return nominal[jnp.minimum(jnp.arange(n)[None] + shifts[:, None], n - 1)]
 
 
 def felt(params: PlannerParams, states: jax.Array, applied: jax.Array) -> jax.Array:
