@@ -3,6 +3,9 @@ PY ?= python3.11
 # the install extras (pyproject.toml): add cuda for JAX on an NVIDIA GPU, e.g.
 # `make test EXTRAS=test,cluster,cuda`
 EXTRAS ?= test,cluster
+# pytest-xdist workers for `make test`: the suite mostly waits on subprocesses and
+# realtime episodes, so two share a 2-core machine (tests/conftest.py)
+TEST_WORKERS ?= 2
 VENV := .venv
 BIN := $(VENV)/bin
 comma := ,
@@ -26,7 +29,7 @@ demo: native
 
 test: native
 	$(BIN)/ruff check common services deploy tests
-	$(BIN)/python -m pytest -q tests
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadgroup --durations=25 tests
 
 # the GPU figures (deploy/bench/gpu.py): a few minutes on a lent GPU machine, with
 # EXTRAS=test,cluster,cuda; BENCH_GPU_ARGS=--quick checks it anywhere in a minute or two

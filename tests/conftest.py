@@ -1,6 +1,9 @@
 """Shared fixtures: fresh random seeds (printed on failure), a VA-MPPI planning problem and a
-Zenoh router on loopback. The run has its own JAX compilation cache and its own
-configuration home (the certificates `vamppi up` makes on first use), never the user's."""
+Zenoh router on loopback. The run has its own JAX compilation cache, and each test process
+(`make test` runs two, pytest-xdist) its own configuration home (the certificates `vamppi up`
+makes on first use) and runtime dir (where a bus command finds the running `vamppi up`),
+never the user's. Tests that must not overlap share an `xdist_group`: those that make
+network namespaces (fixed subnets) and those that start a local Ray cluster."""
 
 from __future__ import annotations
 
@@ -17,14 +20,17 @@ from deploy.launch.up import free_port, router_config
 
 _own_cache: str | None = None
 _own_home: str | None = None
+_own_runtime: str | None = None
 
 
 def pytest_configure(config):
     """One JAX compilation cache for the whole run, shared with the services the
     tests start (docs/running.md): a fresh directory unless VAMPPI_JAX_CACHE is set."""
-    global _own_cache, _own_home
+    global _own_cache, _own_home, _own_runtime
     _own_home = tempfile.mkdtemp(prefix="vamppi-config-home-")
     os.environ["XDG_CONFIG_HOME"] = _own_home
+    _own_runtime = tempfile.mkdtemp(prefix="vamppi-runtime-")
+    os.environ["XDG_RUNTIME_DIR"] = _own_runtime
     if compile_cache.ENV not in os.environ:
         _own_cache = tempfile.mkdtemp(prefix="vamppi-jax-cache-")
         os.environ[compile_cache.ENV] = _own_cache
@@ -32,7 +38,7 @@ def pytest_configure(config):
 
 
 def pytest_unconfigure(config):
-    for d in (_own_cache, _own_home):
+    for d in (_own_cache, _own_home, _own_runtime):
         if d is not None:
             shutil.rmtree(d, ignore_errors=True)
 

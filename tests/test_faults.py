@@ -283,6 +283,7 @@ def test_kill_9_of_vamppi_up_leaves_no_process_behind(clock):
 
 
 # past the lease (within it: the router stopped for 1.5 s, below)
+@pytest.mark.xdist_group("netns")
 @pytest.mark.parametrize("cut_s", [12.0])
 def test_lockstep_waits_out_a_cut_link_and_goes_on_bit_for_bit(cut_s, reference, tmp_path):
     b, stats, ev, _ = run_with_cut(SHORT, cut_s, tmp_path, 1.0)
@@ -291,6 +292,7 @@ def test_lockstep_waits_out_a_cut_link_and_goes_on_bit_for_bit(cut_s, reference,
 
 
 # realtime, the 12 s cut only (the 2 s one, within the lease, is `vamppi bench faults`'s)
+@pytest.mark.xdist_group("netns")
 @pytest.mark.parametrize("cut_s", [12.0])
 def test_a_cut_link_brakes_the_vehicle_which_drives_on_after_and_nothing_is_lost(
         cut_s, tmp_path):

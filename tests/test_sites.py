@@ -21,6 +21,7 @@ from deploy.sim.runner import run_episode
 
 pytestmark = [
     pytest.mark.integration,
+    pytest.mark.xdist_group("netns"),       # fixed subnets (conftest)
     pytest.mark.skipif(os.geteuid() != 0 or shutil.which("ip") is None
                        or shutil.which("openssl") is None,
                        reason="network namespaces need root, ip and openssl"),

@@ -21,10 +21,8 @@ from __future__ import annotations
 
 import json
 import subprocess
-import tempfile
 import threading
 import time
-from pathlib import Path
 from typing import Any
 
 from common.bus import ZenohTransport, open_session
@@ -32,6 +30,7 @@ from common.config import Config, ConfigError, as_overrides, config_from_dict, l
 from common.messages import Handover, Heartbeat, State, encode, on_decoded
 from common.protocol import Out, Stamper
 from common.topics import admin_key, alive_key, heartbeat_key, launcher_key, topic_key
+from deploy.launch.running import runtime_dir
 
 
 class SwapError(RuntimeError):
@@ -162,7 +161,8 @@ def swap(cfg: Config, instance: str | None, overrides: list[str], config_path: s
                     {"spawn": {"name": "planner", "instance": instance, "args": args,
                                "overrides": own, "config": None}}).encode())
             else:
-                log = Path(tempfile.gettempdir()) / f"vamppi-planner-{instance}.log"
+                runtime_dir().mkdir(mode=0o700, parents=True, exist_ok=True)
+                log = runtime_dir() / f"swap-{vehicle}-planner-{instance}.log"
                 cmd = service_command("planner", cfg.bus.connect[0] if cfg.bus.connect
                                       else "tcp/127.0.0.1:7447", own, None, instance,
                                       with_parent=False) + args
