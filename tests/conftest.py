@@ -2,8 +2,8 @@
 Zenoh router on loopback. The run has its own JAX compilation cache, and each test process
 (`make test` runs two, pytest-xdist) its own configuration home (the certificates `vamppi up`
 makes on first use) and runtime dir (where a bus command finds the running `vamppi up`),
-never the user's. Tests that must not overlap share an `xdist_group`: those that make
-network namespaces (fixed subnets) and those that start a local Ray cluster."""
+never the user's. The tests that make network namespaces (on fixed subnets) must not
+overlap: they share one `xdist_group`."""
 
 from __future__ import annotations
 
