@@ -133,8 +133,14 @@ class PlannerConfig:
     footprint_margin_m: float = _rng(0.0, 2.0)
     crash_variance: float = _rng(0.0)
     surface_distance_m: float = _rng(0.0)
-    goal_distance: str = _rng(choices=("turning", "straight"))
+    goal_distance: str = _rng(choices=("turning", "straight", "route"))
+    route_cell_m: float = _rng(0.0, lo_open=True)
+    route_unseen_factor: float = _rng(1.0)
+    route_unseen_turn_factor: float = _rng(1.0)
+    route_cap_m: float = _rng(0.0)
+    route_sweeps: int = _rng(0, 10_000)
     stop_poses: int = _rng(0, 64)
+    time_cost: str = _rng(choices=("instants", "running"))
     w_time: float = _rng(0.0)
     w_dynamic: float = _rng(0.0)
     w_surface: float = _rng(0.0)
@@ -348,6 +354,11 @@ def _check_cross(cfg: Config) -> None:
         raise ConfigError("planner.dt_s * plant.rate_hz must be a whole number of plant steps")
     if p.horizon * p.dt_s < 4.0 - 1e-9:
         raise ConfigError("planner.horizon * planner.dt_s must cover the 4 s of Eq. time_cost")
+    cells = p.route_cell_m / m.resolution_m
+    if p.goal_distance == "route" and (abs(cells - round(cells)) > 1e-6
+                                       or m.size_cells % round(cells)):
+        raise ConfigError("planner.route_cell_m must be a whole number of mapper.resolution_m "
+                          "that divides mapper.size_cells (a lattice cell is a block of map cells)")
 
 
 def load_config(path: str | Path | None = None, overrides: list[str] | dict[str, Any] | None = None,

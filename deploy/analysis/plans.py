@@ -28,7 +28,7 @@ import numpy as np
 from common.config import Config
 from deploy.bench.device import markdown_table
 from services.planner import mppi
-from services.planner.costs import TERMS, MapView
+from services.planner.costs import TERMS
 from services.planner.params import PlannerParams
 from services.plant.dynamics import S, U
 
@@ -76,8 +76,8 @@ def plans(cfg: Config, at_s: float, shifts: tuple[int, ...] = SHIFTS,
 
     @jax.jit
     def price(mean, variance, origin, x0, u_prev, goal, candidates):
-        return mppi.price(params, MapView(mean, variance, origin, res), x0, u_prev, goal,
-                          candidates, jax.random.PRNGKey(0))
+        return mppi.price(params, mppi.map_view(params, mean, variance, origin, res, goal), x0,
+                          u_prev, goal, candidates, jax.random.PRNGKey(0))
 
     states, _, terms = price(*(jnp.asarray(a, jnp.float32) for a in (
         snap["mean"], snap["variance"], snap["origin"], snap["x"], snap["u_prev"], cores.goal,

@@ -29,7 +29,9 @@ import numpy as np
 
 from common.config import Config, by_name
 from common.geometry import footprint_points, goal_path_length, turning_radius, wrap_angle
+from services.planner import route as lattice
 from services.planner.fastmath import FAST
+from services.planner.route import RouteParams
 from services.plant.dynamics import Reaction, S, accelerations
 
 TERMS = ("time", "dynamic", "surface", "dist", "acc", "orientation")
@@ -68,6 +70,8 @@ class CostParams:
     goal_radius_m: float           # [episode]: ... into the goal circle of this radius
     stop_poses: int                # the surface cost also prices this many poses of the
     stop: Reaction                 # derived: ... way to a stop from the horizon's end; 0 = off
+    time_cost: str                 # instants (the paper's d/V at 2, 3, 4 s) | running (every step)
+    route: RouteParams | None      # derived: goal_distance = "route"'s lattice; None: not that
 
     @classmethod
     def from_config(cls, cfg: Config) -> CostParams:
@@ -80,7 +84,8 @@ class CostParams:
                        step_threshold=float(np.sqrt(p.step_sq_threshold)),
                        footprint=tuple(map(tuple, fp.tolist())),
                        turn_radius=turning_radius(v.lf_m + v.lr_m, v.steer_max_rad)
-                       if p.goal_distance == "turning" else 0.0,
+                       if p.goal_distance != "straight" else 0.0,
+                       route=RouteParams.from_config(cfg) if p.goal_distance == "route" else None,
                        stop=Reaction.from_config(v))
 
 
@@ -100,11 +105,13 @@ def exceed_prob(mean: Any, var: Any, threshold: Any) -> Any:
 
 @dataclass(frozen=True)
 class MapView:
-    """What the cost sees of the map: mean and variance grids (H, W) and placement."""
+    """What the cost sees of the map: mean and variance grids (H, W) and placement, and the
+    detour (16, n, n) of `goal_distance = "route"` on it (`route.detour`; None: none)."""
     mean: Any
     variance: Any
     origin: Any          # (2,)
     resolution: float
+    detour: Any = None
 
 
 def footprint_world(c: CostParams, states: Any) -> tuple[Any, Any]:
@@ -252,15 +259,41 @@ def priced_poses(c: CostParams, states: Any) -> Any:
     return jnp.concatenate([states, ext], axis=-2)
 
 
-def goal_distance(c: CostParams, states: Any, goal: Any, xp: Any = jnp) -> Any:
+def goal_distance(c: CostParams, states: Any, goal: Any, xp: Any = jnp,
+                  m: MapView | None = None) -> Any:
     """d of the time, distance and stop terms at poses `states` (..., 6): the straight
     line to the goal (the paper's), or with `turn_radius` the length of the shortest
     forward path into the goal circle at that radius (`geometry.goal_path_length`): a
-    goal beside or behind the vehicle is as far as the turn it takes to get there."""
+    goal beside or behind the vehicle is as far as the turn it takes to get there; with
+    `route` and a map `m` with its detour, that plus the detour the map asks for
+    (services/planner/route.py)."""
     dx, dy = goal[0] - states[..., S.X], goal[1] - states[..., S.Y]
     if c.turn_radius <= 0.0:
         return xp.sqrt(dx * dx + dy * dy)
-    return goal_path_length(dx, dy, states[..., S.PSI], c.turn_radius, c.goal_radius_m, xp)
+    d = goal_path_length(dx, dy, states[..., S.PSI], c.turn_radius, c.goal_radius_m, xp)
+    if c.route is None or m is None or m.detour is None:
+        return d
+    return d + lattice.lookup(c.route, m.detour, m.origin, states)
+
+
+def time_cost(c: CostParams, states: Any, goal: Any, m: MapView) -> tuple[Any, Any, Any]:
+    """Eq. time_cost of one rollout (N+1, 6), and d now and at the horizon's end (the
+    distance and stop terms read them). `instants`, the paper's: w_t (d20/(4 V20) +
+    d30/(2 V30) + dN/VN). `running` (ours): w_t 7/4 mean(d_i / V_i) over steps 1 .. N, the
+    same total weight spread evenly. At 2, 3 and 4 s only, a plan that stands now and
+    drives later pays nothing for standing, and its speed at 4 s is what counts: where the
+    ground it may drive on in time ends a few metres on, the cheapest plan waits so that it
+    reaches that edge fast, and a receding horizon waits again every tick (docs/analysis.md,
+    "The creep"). Every step's d/V makes standing cost d/V_floor a step, more where the goal
+    is farther. V below `time_speed_floor_mps` counts as that floor."""
+    n = c.horizon
+    V = jnp.maximum(states[:, S.V], c.time_speed_floor_mps)
+    if c.time_cost == "running":
+        d = goal_distance(c, states, goal, m=m)
+        return c.w_time * 1.75 * jnp.mean(d[1:] / V[1:]), d[0], d[n]
+    i2, i3 = int(round(2.0 / c.dt_s)), int(round(3.0 / c.dt_s))
+    d0, d2, d3, dn = goal_distance(c, states[jnp.array([0, i2, i3, n])], goal, m=m)
+    return c.w_time * (d2 / (4 * V[i2]) + d3 / (2 * V[i3]) + dn / V[n]), d0, dn
 
 
 def per_metre_weight(c: CostParams, V: Any, xp: Any = jnp) -> Any:
@@ -289,11 +322,7 @@ def rollout_cost(c: CostParams, states: Any, xdots: Any, goal: Any, m: MapView,
     caller has it already (VA-MPPI's native kernels), else computed here."""
     n = c.horizon
     V = states[:, S.V]
-    i2, i3 = int(round(2.0 / c.dt_s)), int(round(3.0 / c.dt_s))
-    d0, d2, d3, dn = goal_distance(c, states[jnp.array([0, i2, i3, n])], goal)
-    vf = c.time_speed_floor_mps
-    s_time = c.w_time * (d2 / (4 * jnp.maximum(V[i2], vf)) + d3 / (2 * jnp.maximum(V[i3], vf))
-                         + dn / jnp.maximum(V[n], vf))
+    s_time, d0, dn = time_cost(c, states, goal, m)
 
     _, a_y, a_tot = accelerations(states[:-1], xdots, jnp)
     beta = FAST.arctan2(states[:-1, S.v], jnp.maximum(states[:-1, S.V], 0.5))

@@ -23,6 +23,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from services.planner import route
 from services.planner.costs import MapView, rollout_cost
 from services.planner.kernels import query_variance, rollouts, surface_terms
 from services.planner.params import PlannerParams
@@ -54,6 +55,17 @@ def planning_map(params: PlannerParams, truth: Any, mean: Any, variance: Any
     prescient, the mapper's map otherwise. Only VA-MPPI reads the variance
     (`query_variance`): deterministic and prescient plan as if every cell were certain."""
     return (truth, variance) if params.controller == "prescient" else (mean, variance)
+
+
+def map_view(params: PlannerParams, mean: Any, variance: Any, origin: Any, resolution: float,
+             goal: Any) -> MapView:
+    """The planning map as the cost sees it, with `goal_distance = "route"`'s detour on it
+    (services/planner/route.py): VA-MPPI's over its variance, the others' over the map
+    taken as certain, as they plan."""
+    r = params.cost.route
+    detour = None if r is None else route.detour(
+        r, mean, variance if params.controller == "va" else None, origin, resolution, goal)
+    return MapView(mean, variance, origin, resolution, detour)
 
 
 @jax.jit
@@ -198,7 +210,7 @@ def _iteration(params: PlannerParams, state: PlannerState, x0, u_prev, goal, m: 
 
 def _solve(params: PlannerParams, state: PlannerState, x0, u_prev, goal, mean, variance,
            origin, resolution) -> tuple[PlannerState, SolveOutput]:
-    m = MapView(mean, variance, origin, resolution)
+    m = map_view(params, mean, variance, origin, resolution, goal)
     info = None
     for _ in range(params.iterations):
         state, info = _iteration(params, state, x0, u_prev, goal, m)
