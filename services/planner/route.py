@@ -114,8 +114,9 @@ def _reach(p: RouteParams) -> int:
     return max(max(abs(r), abs(c)) for row in moves(p) for _, _, _, cs in row for r, c in cs)
 
 
-def _shift(a: Any, dr: int, dc: int, reach: int, xp: Any) -> Any:
-    """b[..., i, j] = a[..., i + dr, j + dc] of `a` padded by `reach` (its padded form)."""
+def _shift(a: Any, dr: int, dc: int, reach: int) -> Any:
+    """From `a` padded by `reach` on every side, the unpadded size shifted by (dr, dc):
+    b[..., i, j] = a[..., reach + i + dr, reach + j + dc]."""
     n, m = a.shape[-2] - 2 * reach, a.shape[-1] - 2 * reach
     return a[..., reach + dr:reach + dr + n, reach + dc:reach + dc + m]
 
@@ -126,7 +127,7 @@ def edge_costs(p: RouteParams, cost: Any, turn_cost: Any, xp: Any = jnp) -> Any:
     r = _reach(p)
     pads = [xp.pad(c, r, constant_values=np.inf) for c in (cost, turn_cost)]
     return xp.stack([xp.stack([
-        sum(_shift(pads[min(a, 1)], dr, dc, r, xp) for dr, dc in cells) * (_step(p) / len(cells))
+        sum(_shift(pads[min(a, 1)], dr, dc, r) for dr, dc in cells) * (_step(p) / len(cells))
         for a, (_, _, _, cells) in enumerate(row)]) for row in moves(p)])
 
 
@@ -134,12 +135,11 @@ def relax(p: RouteParams, vp: Any, edges: Any, target: Any, xp: Any = jnp) -> An
     """One value-iteration sweep: every pose's cost-to-go (16, n, n) over its best move, 0 on
     target, from the field `vp` padded by `_reach` with inf (off the lattice)."""
     r = _reach(p)
-    n = vp.shape[-1] - 2 * r
     best = []
     for h, row in enumerate(moves(p)):
         m = None
         for a, (h2, dr, dc, _) in enumerate(row):
-            x = edges[h, a] + vp[h2, r + dr:r + dr + n, r + dc:r + dc + n]
+            x = edges[h, a] + _shift(vp[h2], dr, dc, r)
             m = x if m is None else xp.minimum(m, x)
         best.append(m)
     return xp.where(target, 0.0, xp.stack(best))
