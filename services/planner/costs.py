@@ -29,9 +29,8 @@ import numpy as np
 
 from common.config import Config, by_name
 from common.geometry import footprint_points, goal_path_length, turning_radius, wrap_angle
-from services.planner import route as lattice
+from services.planner import route
 from services.planner.fastmath import FAST
-from services.planner.route import RouteParams
 from services.plant.dynamics import Reaction, S, accelerations
 
 TERMS = ("time", "dynamic", "surface", "dist", "acc", "orientation")
@@ -71,7 +70,7 @@ class CostParams:
     stop_poses: int                # the surface cost also prices this many poses of the
     stop: Reaction                 # derived: ... way to a stop from the horizon's end; 0 = off
     time_cost: str                 # instants (the paper's d/V at 2, 3, 4 s) | running (every step)
-    route: RouteParams | None      # derived: goal_distance = "route"'s lattice; None: not that
+    route: route.RouteParams | None  # derived: goal_distance = "route"'s lattice; None: not that
 
     @classmethod
     def from_config(cls, cfg: Config) -> CostParams:
@@ -85,7 +84,8 @@ class CostParams:
                        footprint=tuple(map(tuple, fp.tolist())),
                        turn_radius=turning_radius(v.lf_m + v.lr_m, v.steer_max_rad)
                        if p.goal_distance != "straight" else 0.0,
-                       route=RouteParams.from_config(cfg) if p.goal_distance == "route" else None,
+                       route=(route.RouteParams.from_config(cfg)
+                              if p.goal_distance == "route" else None),
                        stop=Reaction.from_config(v))
 
 
@@ -273,7 +273,7 @@ def goal_distance(c: CostParams, states: Any, goal: Any, xp: Any = jnp,
     d = goal_path_length(dx, dy, states[..., S.PSI], c.turn_radius, c.goal_radius_m, xp)
     if c.route is None or m is None or m.detour is None:
         return d
-    return d + lattice.lookup(c.route, m.detour, m.origin, states)
+    return d + route.lookup(c.route, m.detour, m.origin, states)
 
 
 def time_cost(c: CostParams, states: Any, goal: Any, m: MapView) -> tuple[Any, Any, Any]:
