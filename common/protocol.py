@@ -23,7 +23,11 @@ messages it builds itself (`Stamper`). What they share lives here:
   A rejected message changes nothing but that count; the verdict names the reason,
   which the shell counts in health. A message with the stamp of the
   last accepted one (and a new seq) is a `REPEAT`: the plant re-offering a tick, or a
-  service answering one again; lockstep answers it from the output it cached.
+  service answering one again; lockstep answers it from the output it cached. So is a
+  newer boot's message less than `back_s` older than the last accepted one: a
+  restarted plant resumes from the newest whole tick held on the bus, behind the states
+  within that tick its dead incarnation had sent (judged stale, its re-offer would be
+  refused for good); the consumers of states pass the tick.
 - **Episodes** (`Episodes`): the plant names each episode it starts
   (`header.episode`), and every message computed from it carries that name on.
   Each service keeps its state per episode, for the two most recent: a message of
@@ -87,10 +91,11 @@ class Order:
 
 
 def check(order: Order, h: Header, wall: float, ahead_s: float, realtime: bool,
-          owner: str = "") -> str:
+          owner: str = "", back_s: float = 0.0) -> str:
     """The verdict on a message with header `h` received at `wall`: NEW, REPEAT or the
     reason it is rejected (not the owner's, another instance, duplicate, superseded
-    boot, stale, future). `owner`: the service whose topic it is ('' for any)."""
+    boot, stale, future). `owner`: the service whose topic it is ('' for any); `back_s`:
+    how far behind the last accepted stamp a newer boot may resume."""
     if owner and h.source.split("/")[0] != owner:
         return f"not from the {owner}"
     if owner and order.bound and h.source != order.bound:
@@ -103,7 +108,8 @@ def check(order: Order, h: Header, wall: float, ahead_s: float, realtime: bool,
     if h.boot == last.boot and h.seq <= last.seq:
         return "duplicate"
     if h.stamp < last.stamp - EPS:
-        return "stale"
+        resumed = h.boot > last.boot and last.stamp - h.stamp < back_s - EPS
+        return REPEAT if resumed else "stale"
     if realtime:
         beyond = h.stamp - wall > last.offset + ahead_s + REALTIME_SLACK_S
     else:
@@ -125,10 +131,10 @@ def accept(order: Order, h: Header, wall: float) -> Order:
 
 
 def judge(order: Order, h: Header, wall: float, ahead_s: float, realtime: bool,
-          owner: str = "") -> tuple[Order, str]:
+          owner: str = "", back_s: float = 0.0) -> tuple[Order, str]:
     """`check` and its consequence: the order with the message accepted, or with a
     "future" one counted (FUTURE_RUN), or unchanged."""
-    verdict = check(order, h, wall, ahead_s, realtime, owner)
+    verdict = check(order, h, wall, ahead_s, realtime, owner, back_s)
     if verdict in ACCEPTED:
         return accept(order, h, wall), verdict
     last = order.last(h.source)

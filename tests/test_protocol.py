@@ -64,6 +64,12 @@ def test_acceptance_per_source_and_boot():
     assert check(o, replace(h, seq=1, stamp=9.0), 103.0, 0.1, True) == "future"
     # a restarted publisher starts its seq again; an older process is over
     assert check(o, replace(h, seq=0, boot=2), 100.0, 0.1, False) == REPEAT
+    # ... and may go back within back_s: a restarted plant resumes from the newest tick
+    back = replace(h, seq=0, boot=2, stamp=0.92)
+    assert check(o, back, 100.0, 0.1, False, back_s=0.1) == REPEAT
+    assert check(o, back, 100.0, 0.1, False) == "stale"
+    assert check(o, replace(back, stamp=0.9), 100.0, 0.1, False, back_s=0.1) == "stale"
+    assert check(o, replace(back, boot=1, seq=1), 100.0, 0.1, False, back_s=0.1) == "stale"
     assert check(accept(o, replace(h, boot=2), 100.0), replace(h, seq=9), 100.0, 0.1,
                  False) == "superseded boot"
     assert check(o, replace(h, source="rogue/0", stamp=50.0), 100.0, 0.1, False) == NEW
@@ -249,6 +255,32 @@ def test_sensor_renders_on_its_frame_clock_and_answers_a_repeat_from_its_frame(c
     run, v, frames = sensor.on_state(p, run, _state(cores, 0.0, 0, boot=2, episode=EP + 1), 0.0)
     assert v == NEW and [f.stamp for f in frames] == [0.0]
     assert sensor.on_state(p, run, _state(cores, 0.2, 6), 0.0)[1] == NEW
+
+
+def test_a_restarted_plant_behind_its_dead_incarnation_is_answered_from_the_cache(cores):
+    """The plant died having sent states within tick 0.1-0.2; restarted, it re-offers 0.1
+    (the newest whole tick held on the bus). Judged stale, that re-offer was refused for
+    good and the lockstep episode stalled; it is a repeat, answered from what was cached."""
+    maps = _maps(cores, 2)
+    srun, prun = sensor.SensorRun(), planner.PlannerRun()
+    for m in maps:
+        prun, _ = planner.on_map(cores.planner, prun, m, 0.0)
+    for seq, t in enumerate((0.0, 0.1)):
+        srun, _, frame = sensor.on_state(cores.sensor, srun, _state(cores, t, seq), 0.0)
+        prun, _, _ = planner.on_state(cores.planner, prun, _state(cores, t, seq), 0.0)
+        prun, answer = planner.solve(cores.planner, prun, planner.due(cores.planner, prun, 0.0),
+                                     0.0)
+    for seq, t in enumerate((0.12, 0.14), start=2):               # within the tick, then dead
+        srun, v, _ = sensor.on_state(cores.sensor, srun, _state(cores, t, seq), 0.0)
+        prun, _, _ = planner.on_state(cores.planner, prun, _state(cores, t, seq), 0.0)
+    assert srun.held_state.header.stamp == prun.held_state.header.stamp == 0.1
+    reoffer = _state(cores, 0.1, 0, boot=2)
+    srun, v, again = sensor.on_state(cores.sensor, srun, reoffer, 0.0)
+    assert v == REPEAT and again == frame
+    prun, v, outs = planner.on_state(cores.planner, prun, reoffer, 0.0)
+    assert v == REPEAT and outs == answer
+    assert sensor.on_state(cores.sensor, srun, _state(cores, 0.12, 1, boot=2), 0.0)[1] == NEW
+    assert sensor.on_state(cores.sensor, srun, _state(cores, 0.0, 9), 0.0)[1] == "superseded boot"
 
 
 # ----------------------------------------------------------------------------- mapper

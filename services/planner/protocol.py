@@ -171,7 +171,8 @@ def on_state(p: PlannerProtocolParams, run: PlannerRun, msg: State, wall: float
              ) -> tuple[PlannerRun, str, tuple[Out, ...]]:
     h = msg.header
     ctx = context(run.episodes, h.episode, PlannerCtx)
-    states, verdict = judge(ctx.states, h, wall, p.state_ahead_s, not p.lockstep, "plant")
+    states, verdict = judge(ctx.states, h, wall, p.state_ahead_s, not p.lockstep,
+                           "plant", p.dt)
     if verdict not in ACCEPTED:
         return after_rejection(run, h.episode, replace(ctx, states=states),
                                states is not ctx.states), verdict, ()

@@ -87,7 +87,8 @@ def on_state(p: SensorParams, run: SensorRun, msg: State, wall: float
              ) -> tuple[SensorRun, str, tuple[Out, ...]]:
     h = msg.header
     ctx = context(run.episodes, h.episode, SensorCtx)
-    order, verdict = judge(ctx.order, h, wall, p.ahead_s, not p.lockstep, "plant")
+    order, verdict = judge(ctx.order, h, wall, p.ahead_s, not p.lockstep, "plant",
+                           p.tick_s)
     if verdict not in ACCEPTED:
         return after_rejection(run, h.episode, replace(ctx, order=order),
                                order is not ctx.order), verdict, ()
