@@ -121,18 +121,33 @@ def test_a_heightmap_beside_the_file_is_the_terrain_resampled_to_the_grid(tmp_pa
 
 
 def test_a_generated_world_is_reproducible_from_its_seed_and_feasible():
+    """corner seed 2 drawn again is the committed held-out world: its draw (occluder,
+    start, goal, terrain, the hidden obstacle's size) exactly; the hidden obstacle's place
+    and the probe's time, which come of a drive, within the float32 rounding of the
+    planner's straight-line goal distance, which changed once since the set was drawn
+    (seen: 1.1e-5 m, 0.02 s; docs/scenarios.md)."""
     from deploy.sim.generate import generate, reachable
     a = generate(CFG, "corner", 2)
-    # the same draw again, without the final check drive (its time is the one field it adds)
-    b = generate(CFG, "corner", 2, drive=False)
-    assert spec_toml(a) == spec_toml(replace(b, generator={
-        **b.generator, "prescient_time_s": a.generator["prescient_time_s"]}))
+    file = load_spec(BENCHMARK_DIR / "heldout" / "corner-0002.toml")
+
+    def hidden(spec):
+        return [o for o in spec.obstacles if o.hidden]
+
+    def draw(spec):
+        return spec_toml(replace(spec, generator={}, obstacles=tuple(
+            replace(o, x=0.0, y=0.0) if o.hidden else o for o in spec.obstacles)))
+    assert draw(a) == draw(file)
+    assert len(hidden(a)) == len(hidden(file)) == 1
+    for o, f in zip(hidden(a), hidden(file)):
+        assert math.hypot(o.x - f.x, o.y - f.y) < 3e-5
+    assert abs(a.generator["probe_time_s"] - file.generator["probe_time_s"]) <= 0.03
+    assert abs(a.generator["prescient_time_s"] - file.generator["prescient_time_s"]) <= 0.03
     scn = build(a, 0, 0.2)
     assert math.isfinite(reachable(scn))
     assert a.generator["prescient_time_s"] > 0                 # the prescient drive succeeded
-    hidden = [o for o in a.obstacles if o.hidden]
-    assert hidden and all(math.hypot(o.x - a.start.x, o.y - a.start.y) > 15 for o in hidden)
-    assert spec_toml(generate(CFG, "corner", 3, drive=False)) != spec_toml(b)
+    assert all(math.hypot(o.x - a.start.x, o.y - a.start.y) > 15 for o in hidden(a))
+    # every seed of the set drew a world of its own
+    assert len({draw(load_spec(f)) for f in SET_FILES}) == len(SET_FILES)
 
 
 def test_the_plant_refuses_commands_from_a_planner_that_runs_another_world():
