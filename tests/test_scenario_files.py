@@ -138,7 +138,7 @@ def test_a_generated_world_is_reproducible_from_its_seed_and_feasible():
             replace(o, x=0.0, y=0.0) if o.hidden else o for o in spec.obstacles)))
     assert draw(a) == draw(file)
     assert len(hidden(a)) == len(hidden(file)) == 1
-    for o, f in zip(hidden(a), hidden(file)):
+    for o, f in zip(hidden(a), hidden(file), strict=True):
         assert math.hypot(o.x - f.x, o.y - f.y) < 3e-5
     assert abs(a.generator["probe_time_s"] - file.generator["probe_time_s"]) <= 0.03
     assert abs(a.generator["prescient_time_s"] - file.generator["prescient_time_s"]) <= 0.03
