@@ -30,7 +30,7 @@ RT = ["planner.samples=64", 'episode.scenario="open-field"', 'episode.clock="rea
 def planner(p, instance, overrides, *args):
     """Another planner process on the pipeline's router."""
     return Proc(service_command("planner", p.endpoint, overrides, None, instance) + list(args),
-                p.tmp / f"planner{instance}.log", prefix=p.nice)
+                p.tmp / f"planner{instance}.log")
 
 
 def authority_events(p):

@@ -17,13 +17,12 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import shutil
 import signal
 import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -40,24 +39,6 @@ from deploy.recording.record import Recorder, iter_messages, recording_metadata
 from services.plant.protocol import OUTCOMES
 
 PY = sys.executable
-REALTIME_NICE = -10
-
-
-def nice_prefix(realtime: bool) -> list[str]:
-    """The command prefix for a process of a realtime pipeline: `nice` at REALTIME_NICE
-    (as root; else `nice` says it cannot and runs the command as it is). Beside a
-    parallel test worker's lockstep processes, which run flat out, a realtime pipeline
-    missed its periods and braked on stale perception before any fault was injected; a
-    robot's stack has its machine to itself. A lockstep episode does not depend on
-    timing: its processes run as they are."""
-    return ["nice", "-n", str(REALTIME_NICE)] if realtime and shutil.which("nice") else []
-
-
-def priority(args: Sequence[str]) -> list[str]:
-    """`nice_prefix` for a command whose arguments ask for the realtime clock."""
-    args = list(args)
-    return nice_prefix(any('episode.clock="realtime"' in a for a in args) or any(
-        a == "--clock" and b == "realtime" for a, b in zip(args, args[1:], strict=False)))
 
 
 def client(endpoint: str) -> BusConfig:
@@ -116,7 +97,6 @@ class Pipeline:
         self.endpoint = endpoint or f"tcp/127.0.0.1:{self.port}"
         self.listen = listen or [self.endpoint]
         self.router_args, self.router_prefix = list(router_args), router_prefix
-        self.nice = nice_prefix(self.cfg.episode.clock == "realtime")
         self.procs: dict[str, Proc] = {}
         self.router = self.start_router()
         self.session = open_session(observer or client(self.endpoint))
@@ -147,7 +127,7 @@ class Pipeline:
             args += ["--listen", ep]
         log = self.tmp / "router.log"
         before = log.read_text().count("router listening") if log.exists() else 0
-        p = Proc(args, log, prefix=[*self.nice, *(self.router_prefix or [])])
+        p = Proc(args, log, prefix=self.router_prefix)
         deadline = time.monotonic() + 30
         while log.read_text().count("router listening") <= before:
             assert time.monotonic() < deadline and p.p.poll() is None, p.tail()
@@ -166,7 +146,7 @@ class Pipeline:
                 config: str | None = None) -> Proc:
         cmd = service_command(name, endpoint or self.endpoint, [*self.overrides, *extra],
                               config)
-        p = Proc(cmd, self.tmp / f"{name}.log", env, [*self.nice, *(prefix or [])])
+        p = Proc(cmd, self.tmp / f"{name}.log", env, prefix)
         self.procs[name] = p
         return p
 
@@ -476,8 +456,7 @@ class Up:
 
     def __init__(self, args: list[str], vehicle: str):
         self.vehicle = vehicle
-        self.p = subprocess.Popen([*priority(args), PY, "-m", "deploy", "up", "--vehicle",
-                                   vehicle, *args],
+        self.p = subprocess.Popen([PY, "-m", "deploy", "up", "--vehicle", vehicle, *args],
                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         self.lines: list[tuple[float, str]] = []
         self._t = threading.Thread(target=self._read, daemon=True)
