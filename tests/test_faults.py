@@ -133,6 +133,7 @@ RT = ["planner.samples=64", 'episode.scenario="open-field"', 'episode.clock="rea
       "episode.timeout_s=40"]
 
 
+@pytest.mark.realtime
 def test_hostile_messages_do_not_stop_a_realtime_episode(tmp_path):
     """The same messages in realtime: the episode goes on to the goal. Latest-value inboxes
     keep one message per source, so of the variants that claim the real publisher only the
@@ -155,6 +156,7 @@ def test_hostile_messages_do_not_stop_a_realtime_episode(tmp_path):
 
 # the sensor's loss is the mapper's (perception stale), the router's the planner's (commands
 # stale) and a restart like in lockstep: `vamppi bench faults` measures all four
+@pytest.mark.realtime
 @pytest.mark.parametrize("name", ["mapper", "planner", "plant"])
 def test_realtime_loss_of_a_service_stops_the_vehicle_and_it_drives_on(name, tmp_path):
     """Killed at speed: the plant brakes to a standstill (perception or commands stale);
@@ -202,6 +204,7 @@ def test_lockstep_without_the_mapper_stops_safely_and_says_why(tmp_path):
 UP = ["--samples", "64", "--set", "episode.timeout_s=3.0", "--scenario", "open-field"]
 
 
+@pytest.mark.realtime
 def test_vamppi_up_restarts_a_wedged_planner_in_realtime():
     marker = f"suprt{os.getpid()}"
     up = Up([*UP, "--set", "episode.timeout_s=40", "--clock", "realtime"], marker)
@@ -292,6 +295,7 @@ def test_lockstep_waits_out_a_cut_link_and_goes_on_bit_for_bit(cut_s, reference,
 
 
 # realtime, the 12 s cut only (the 2 s one, within the lease, is `vamppi bench faults`'s)
+@pytest.mark.realtime
 @pytest.mark.xdist_group("netns")
 @pytest.mark.parametrize("cut_s", [12.0])
 def test_a_cut_link_brakes_the_vehicle_which_drives_on_after_and_nothing_is_lost(
@@ -349,6 +353,7 @@ def _stop_each(b, at, hold_s: float) -> None:
         proc.signal(signal.SIGCONT)
 
 
+@pytest.mark.realtime
 def test_realtime_stopped_services_brake_the_vehicle_until_they_go_on(tmp_path):
     """Unsupervised, each service and the router stopped for 1.5 s in turn and continued:
     the plant brakes each time (a stopped plant is the world paused) and the vehicle

@@ -109,6 +109,7 @@ def test_lockstep_swaps_to_other_configurations_complete_the_episode(tmp_path):
     assert p.procs["planner"].p.returncode == RETIRED_EXIT        # the old one retired
 
 
+@pytest.mark.realtime
 def test_realtime_swap_by_command_a_refused_one_and_a_fail_over(tmp_path):
     """Realtime: `vamppi swap planner` whose new planner is not warm in time fails and the
     old planner keeps control; one that is takes over (the old standing by); then the new
@@ -174,6 +175,7 @@ def beats_of(p, source):
     return {b.status for _, b in p.beats if b.header.source == source}
 
 
+@pytest.mark.realtime
 def test_a_swap_inside_vamppi_up(tmp_path):
     """`vamppi swap` finds `vamppi up`'s launcher: the new planner is its child, the old one
     retires, and the summary counts no restart."""

@@ -290,6 +290,7 @@ def test_lockstep_episode_recorded_whole_replays_bit_for_bit_and_a_change_diverg
                 assert cells == body["column_count"] ** 2 == 400 * 400
 
 
+@pytest.mark.realtime
 @pytest.mark.integration
 def test_timing_of_a_realtime_recording_agrees_with_the_live_pipeline_bench(tmp_path):
     """The bench's live chain follower and `vamppi timing` on its recording: same run,

@@ -93,6 +93,7 @@ def test_lockstep_across_two_secured_sites_is_bit_identical_under_attack(tmp_pat
     assert {"duplicate", "stale", "future", "not the authority"} <= cmd_why, cmd_why
 
 
+@pytest.mark.realtime
 def test_realtime_across_two_secured_sites_loses_no_command_under_a_denied_flood(tmp_path):
     """Realtime across the two sites: every command the planner sends reaches site A (its
     sequence numbers have no gap) and the vehicle reaches the goal, while a client with a
