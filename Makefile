@@ -3,10 +3,10 @@ PY ?= python3.11
 # the install extras (pyproject.toml): add cuda for JAX on an NVIDIA GPU, e.g.
 # `make test EXTRAS=test,cluster,cuda`
 EXTRAS ?= test,cluster
-# pytest-xdist workers for `make test`: the suite mostly waits on subprocesses, so two
-# share a 2-core machine (tests/conftest.py); the tests marked realtime run after them one
-# at a time, since a realtime pipeline (some 1.3 cores) beside a lockstep one running flat
-# out falls behind the wall clock and brakes on stale perception
+# pytest-xdist workers for `make test`: two keep a 2-core machine busy (vmstat: 0-2 % idle;
+# tests/conftest.py); the tests marked realtime run after them one at a time, since a
+# realtime pipeline (some 1.3 cores) beside a lockstep one running flat out falls behind the
+# wall clock and brakes on stale perception
 TEST_WORKERS ?= 2
 VENV := .venv
 BIN := $(VENV)/bin
