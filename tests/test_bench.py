@@ -1,8 +1,10 @@
-"""`vamppi bench planner --json`: a complete, well-formed document (no timing asserted)."""
+"""`vamppi bench ... --json`: complete, well-formed documents (no timing asserted)."""
 
 import json
 import subprocess
 import sys
+
+import pytest
 
 from deploy.bench.main import table
 
@@ -107,3 +109,21 @@ def test_faults_table_renders_the_committed_figures():
     assert text.count("| supervised |") == 8 and "| lost at speed | realtime | router |" in text
     assert all(c["outcome"] in ("success", "timeout") for c in result["cases"])
     assert all(c["bit_identical"] for c in result["cases"] if c["case"] == "supervised")
+
+
+def test_startup_bench_times_each_services_import_and_names_the_versions():
+    doc = bench_json("startup", "--reps", "1")
+    assert doc["benchmark"] == "startup" and doc["device"]
+    assert set(doc["settings"]["versions"]) == {"jax", "jaxlib", "ml_dtypes", "numpy"}
+    cases = {c["case"]: c for c in doc["cases"]}
+    assert set(cases) == {"sensor", "mapper", "planner", "plant", "jax", "ml_dtypes"}
+    for c in cases.values():
+        assert c["reps"] == 1 and 0 < c["min_s"] <= c["median_s"] <= c["max_s"]
+    assert cases["ml_dtypes"]["after"] == "import numpy"
+    assert "| planner | services.planner.node | 1 |" in table(doc)
+
+
+def test_startup_bench_says_which_import_failed():
+    from deploy.bench.startup import ImportFailed, import_s
+    with pytest.raises(ImportFailed, match="importing no_such_module failed: ModuleNotFoundError"):
+        import_s("", "no_such_module")

@@ -2,7 +2,8 @@
 Each benchmark prints a markdown table, or with `--json` its result (the machine that ran it
 in `device`, deploy.bench.device): planner and mapper (deploy.bench.kernels); bus, pipeline,
 security and record (deploy.bench.bus); peer (deploy.bench.peer, the extra `.[peer]`);
-faults (deploy.bench.faults); swaps (deploy.bench.swaps); view (deploy.bench.view).
+faults (deploy.bench.faults); swaps (deploy.bench.swaps); view (deploy.bench.view);
+startup (deploy.bench.startup).
 """
 
 from __future__ import annotations
@@ -13,13 +14,14 @@ from pathlib import Path
 from typing import Any
 
 from common.config import Config
-from deploy.bench import bus, faults, kernels, peer, swaps, view
+from deploy.bench import bus, faults, kernels, peer, startup, swaps, view
 
 TABLES = {"planner": kernels.planner_table, "mapper": kernels.mapper_table,
           "bus": bus.bus_table, "pipeline": bus.pipeline_table,
           "security": bus.security_table, "record": bus.record_table,
           "faults": faults.faults_table, "swaps": swaps.swaps_table,
-          "peer": peer.peer_table, "view": view.view_table}
+          "peer": peer.peer_table, "view": view.view_table,
+          "startup": startup.startup_table}
 
 
 def table(result: dict[str, Any]) -> str:
@@ -55,6 +57,8 @@ def main(cfg: Config, what: str, samples: list[int], controllers: list[str], rep
             result = swaps.bench_swaps(cfg, Path(tmp))
     elif what == "view":
         result = view.bench_view(cfg, reps)
+    elif what == "startup":
+        result = startup.bench_startup(cfg, reps)
     else:
         raise ValueError(f"unknown benchmark {what!r}")
     print(json.dumps(result) if as_json else table(result), flush=True)

@@ -308,16 +308,17 @@ def cmd_scenario(args: argparse.Namespace, cfg: Config) -> int:
 def cmd_bench(args: argparse.Namespace, cfg: Config) -> int:
     from deploy.bench import main as bench
     from deploy.bench.peer import MissingExtra
+    from deploy.bench.startup import ImportFailed
     from deploy.sim.experiment import parse_list
     samples = args.samples_list or ("800" if args.what == "pipeline" else "400,800,1000,4000")
     controllers = args.controllers or ("va" if args.what == "pipeline" else "va,deterministic")
-    reps = args.reps if args.reps is not None else (3 if args.what == "view" else 20)
+    reps = args.reps if args.reps is not None else {"view": 3, "startup": 5}.get(args.what, 20)
     try:
         return bench.main(cfg, args.what, parse_list(samples, int), parse_list(controllers),
                           reps, args.json, overrides_from_args(args), args.duration,
                           args.config, args.record,
                           parse_list(args.forms) if args.forms else None)
-    except MissingExtra as exc:
+    except (MissingExtra, ImportFailed) as exc:
         print(f"vamppi bench {args.what}: {exc}", file=sys.stderr)
         return 2
 
@@ -817,7 +818,7 @@ def _tool_commands(sub: Any) -> None:
     """Benchmarks and the configuration."""
     p = sub.add_parser("bench", help="speed benchmarks (a table, or JSON with --json)")
     p.add_argument("what", choices=("planner", "mapper", "bus", "pipeline", "peer", "record",
-                                    "faults", "swaps", "security", "view"))
+                                    "faults", "swaps", "security", "view", "startup"))
     p.add_argument("--samples", dest="samples_list",
                    help="sample counts K (planner, peer: 400,800,1000,4000; pipeline: 800)")
     p.add_argument("--controllers", help="planner: va,deterministic; pipeline: va")
@@ -828,7 +829,8 @@ def _tool_commands(sub: Any) -> None:
     p.add_argument("--record", metavar="FILE.mcap",
                    help="pipeline: record each case (vamppi timing analyses the same run)")
     p.add_argument("--reps", type=int, default=None,
-                   help="timed repetitions per case (default 20; view: episodes per case, 3)")
+                   help="timed repetitions per case (default 20; view: episodes per case, "
+                        "3; startup: 5)")
     p.add_argument("--forms", help="planner: the kernels' forms side by side, e.g. "
                                    "native,jax (each sets planner.va_kernel and "
                                    "planner.rollout_kernel; default: as configured)")
