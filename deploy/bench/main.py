@@ -58,7 +58,7 @@ def main(cfg: Config, what: str, samples: list[int], controllers: list[str], rep
     elif what == "view":
         result = view.bench_view(cfg, reps)
     elif what == "startup":
-        result = startup.bench_startup(cfg, reps)
+        result = startup.bench_startup(reps)
     else:
         raise ValueError(f"unknown benchmark {what!r}")
     print(json.dumps(result) if as_json else table(result), flush=True)

@@ -12,7 +12,6 @@ import subprocess
 import sys
 from typing import Any
 
-from common.config import Config
 from deploy.bench.device import device_info, heading, markdown_table
 
 # case: (what is imported before the clock starts, the module timed)
@@ -36,7 +35,7 @@ def import_s(pre: str, module: str) -> float:
     return float(r.stdout.strip().splitlines()[-1])
 
 
-def bench_startup(cfg: Config, reps: int) -> dict[str, Any]:
+def bench_startup(reps: int) -> dict[str, Any]:
     times: dict[str, list[float]] = {k: [] for k in CASES}
     for _ in range(reps):
         for k, (pre, module) in CASES.items():
