@@ -31,11 +31,12 @@ demo: native
 
 test: native
 	$(BIN)/ruff check common services deploy tests
-	export VAMPPI_JAX_CACHE=$$(mktemp -d); failed=0; \
+	own=; [ -n "$$VAMPPI_JAX_CACHE" ] || { own=$$(mktemp -d); export VAMPPI_JAX_CACHE=$$own; }; \
+	failed=0; \
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadgroup --durations=25 \
 		-m "not realtime" tests || failed=1; \
 	$(BIN)/python -m pytest -q --durations=10 -m realtime tests || failed=1; \
-	rm -rf $$VAMPPI_JAX_CACHE; exit $$failed
+	[ -z "$$own" ] || rm -rf "$$own"; exit $$failed
 
 # the GPU figures (deploy/bench/gpu.py): a few minutes on a lent GPU machine, with
 # EXTRAS=test,cluster,cuda; BENCH_GPU_ARGS=--quick checks it anywhere in a minute or two
