@@ -159,28 +159,30 @@ def derivatives(p: VehicleConfig, x: Any, u: Any, xp: Any = np) -> Any:
     fz_rear = m * g * p.lf_m / L + m * ax * h / L
     dfz_front = m * ay * h / tr * (p.lr_m / L)
     dfz_rear = m * ay * h / tr * (p.lf_m / L)
-    fz_fl = xp.maximum(fz_front / 2 - dfz_front, 0.0)
-    fz_fr = xp.maximum(fz_front / 2 + dfz_front, 0.0)
-    fz_rl = xp.maximum(fz_rear / 2 - dfz_rear, 0.0)
-    fz_rr = xp.maximum(fz_rear / 2 + dfz_rear, 0.0)
+    # the four wheels, front left, front right, rear left, rear right, as one array (and the
+    # two front wheels' angles as another): each element is computed as it would be alone,
+    # but the tyre model runs once for the four, which XLA compiles into a quarter of the
+    # loops (the JAX form of the rollouts 30 % faster on a CPU, docs/planner.md)
+    fz = xp.maximum(xp.stack([fz_front / 2 - dfz_front, fz_front / 2 + dfz_front,
+                              fz_rear / 2 - dfz_rear, fz_rear / 2 + dfz_rear]), 0.0)
 
     # Ackermann: the inner front wheel turns more
     tan_d = xp.tan(delta)
-    d_left = xp.arctan2(L * tan_d, L - 0.5 * tr * tan_d)
-    d_right = xp.arctan2(L * tan_d, L + 0.5 * tr * tan_d)
+    d_front = xp.arctan2(xp.stack([L * tan_d, L * tan_d]),
+                         xp.stack([L - 0.5 * tr * tan_d, L + 0.5 * tr * tan_d]))
 
     # slip angles at each wheel (wheel-speed floor keeps them defined at V -> 0)
     floor = p.slip_speed_floor_mps
     u_left = xp.maximum(V - 0.5 * tr * r, floor)
     u_right = xp.maximum(V + 0.5 * tr * r, floor)
-    a_fl = d_left - xp.arctan2(v + p.lf_m * r, u_left)
-    a_fr = d_right - xp.arctan2(v + p.lf_m * r, u_right)
-    a_rl = -xp.arctan2(v - p.lr_m * r, u_left)
-    a_rr = -xp.arctan2(v - p.lr_m * r, u_right)
-    f_fl = tire_lateral_force(a_fl, fz_fl, p, xp) * xp.cos(d_left)
-    f_fr = tire_lateral_force(a_fr, fz_fr, p, xp) * xp.cos(d_right)
-    f_rl = tire_lateral_force(a_rl, fz_rl, p, xp)
-    f_rr = tire_lateral_force(a_rr, fz_rr, p, xp)
+    v_front, v_rear = v + p.lf_m * r, v - p.lr_m * r
+    slip = xp.arctan2(xp.stack([v_front, v_front, v_rear, v_rear]),
+                      xp.stack([u_left, u_right, u_left, u_right]))
+    alpha = xp.stack([d_front[0] - slip[0], d_front[1] - slip[1], -slip[2], -slip[3]])
+    f_lat = tire_lateral_force(alpha, fz, p, xp)
+    cos_front = xp.cos(d_front)
+    f_fl, f_fr = f_lat[0] * cos_front[0], f_lat[1] * cos_front[1]
+    f_rl, f_rr = f_lat[2], f_lat[3]
 
     v_dot_dyn = (f_fl + f_fr + f_rl + f_rr) / m - V * r
     r_dot_dyn = (p.lf_m * (f_fl + f_fr) - p.lr_m * (f_rl + f_rr)) / p.yaw_inertia_kgm2
