@@ -161,8 +161,8 @@ def derivatives(p: VehicleConfig, x: Any, u: Any, xp: Any = np) -> Any:
     dfz_rear = m * ay * h / tr * (p.lf_m / L)
     # the four wheels, front left, front right, rear left, rear right, as one array (and the
     # two front wheels' angles as another): each element is computed as it would be alone,
-    # but the tyre model runs once for the four, which XLA compiles into a quarter of the
-    # loops (the JAX form of the rollouts 30 % faster on a CPU, docs/planner.md)
+    # and the tyre model is traced once instead of four times (the JAX form of the
+    # rollouts 30 % faster on a CPU, docs/planner.md "Kernel forms, whole")
     fz = xp.maximum(xp.stack([fz_front / 2 - dfz_front, fz_front / 2 + dfz_front,
                               fz_rear / 2 - dfz_rear, fz_rear / 2 + dfz_rear]), 0.0)
 
