@@ -61,6 +61,22 @@ def test_the_benchmark_set_is_split_in_halves_and_every_file_loads():
         assert p.stem == f"{spec.kind}-{spec.generator['seed']:04d}" == spec.name
 
 
+def test_the_fresh_draw_uses_seeds_the_set_does_not_and_every_file_loads():
+    """The worlds of docs/results.md's fresh draw (common/scenarios/fresh): generated files
+    of every kind, each with a hidden obstacle, none with a seed of the set's."""
+    import tomllib
+    fresh = sorted((BENCHMARK_DIR.parent / "fresh").glob("*.toml"))
+    specs = [load_spec(p) for p in fresh]
+    assert len(specs) >= 20
+    assert {s.kind for s in specs} == {load_spec(p).kind for p in SET_FILES}
+    set_seeds = {load_spec(p).generator["seed"] for p in SET_FILES}
+    for p, spec in zip(fresh, specs, strict=True):
+        assert spec_toml(parse_spec(tomllib.loads(p.read_text()))) == p.read_text()
+        assert any(o.hidden for o in spec.obstacles)
+        assert spec.generator["seed"] not in set_seeds
+        assert p.stem == f"{spec.kind}-{spec.generator['seed']:04d}" == spec.name
+
+
 GOOD = spec_toml(spec_of("alleyway"))
 
 
