@@ -10,6 +10,7 @@ import time
 import pytest
 
 from common.config import load_config
+from common.scenarios import spec_of, spec_toml
 from deploy.analysis.summary import summarize
 from deploy.sim.experiment import (
     KEY_FIELDS,
@@ -17,6 +18,7 @@ from deploy.sim.experiment import (
     ExperimentError,
     config_digest,
     cpu_shares,
+    expand_scenarios,
     experiment,
     read_runs,
     record_format,
@@ -108,6 +110,31 @@ def test_runs_on_an_older_scenario_layout_are_not_resumed_with_the_newest(tmp_pa
         experiment(cfg, ["offroad"], ["va"], [16], 2, 0, tmp_path, progress=False)
     assert (tmp_path / "runs.jsonl").read_text() == before
     assert not (tmp_path / "config.toml").exists()
+
+
+@pytest.mark.parametrize("broken", ["truncated", "heightmap", "missing", "unknown"])
+def test_a_scenario_that_cannot_be_built_is_refused_before_any_run(tmp_path, broken):
+    """A bad world in the list (a truncated file, a heightmap not there, no such file or
+    built-in) is one error naming it, before anything runs or is written."""
+    good = tmp_path / "worlds" / "good.toml"
+    good.parent.mkdir()
+    good.write_text(spec_toml(spec_of("open-field")))
+    bad = tmp_path / "worlds" / "bad.toml"
+    if broken == "truncated":
+        bad.write_text(good.read_text()[:200])
+    elif broken == "heightmap":
+        bad.write_text(good.read_text().replace('kind = "waves"',
+                                                'kind = "heightmap"\nheightmap = "gone.npy"'))
+    scenario = {"missing": str(tmp_path / "gone.toml"),
+                "unknown": "no-such-world"}.get(broken, str(good.parent))
+    out = tmp_path / "out"
+    cfg = load_config(overrides=["episode.timeout_s=1.5"])
+    with pytest.raises(ExperimentError, match={"truncated": "bad.toml: not valid TOML",
+                                               "heightmap": "bad.toml: .*gone.npy",
+                                               "missing": "gone.toml: no such",
+                                               "unknown": "unknown scenario"}[broken]):
+        experiment(cfg, expand_scenarios([scenario]), ["va"], [16], 1, 0, out, progress=False)
+    assert not out.exists()
 
 
 def test_the_saved_configuration_pins_one_scenario_and_its_layout_by_number():

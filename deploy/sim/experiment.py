@@ -47,7 +47,7 @@ from tqdm import tqdm
 from common.config import Config, config_toml
 from common.memory import share_device
 from common.process import when_orphaned
-from common.scenarios import build_scenario, resolve_layout
+from common.scenarios import ScenarioError, build_scenario, resolve_layout
 from deploy.sim.runner import Cores, run_episode
 from services.plant.core import OUTCOMES
 from services.plant.dynamics import S
@@ -58,7 +58,8 @@ KEY_FIELDS = ("scenario", "controller", "samples", "seed")
 
 
 class ExperimentError(ValueError):
-    """An output directory that cannot be resumed with this configuration."""
+    """An output directory that cannot be resumed with this configuration, or a scenario
+    that cannot be built."""
 
 
 def config_digest(cfg: Config) -> str:
@@ -181,6 +182,18 @@ def expand_scenarios(items: list[str]) -> list[str]:
     return out
 
 
+def check_scenarios(cfg: Config, scenarios: list[str]) -> None:
+    """Build every scenario once before any run, so that a missing or broken file (its
+    heightmap too) is one error naming it, not a failure in a worker halfway through."""
+    for s in scenarios:
+        try:
+            build_scenario(s, cfg.episode.scenario_seed, cfg.mapper.resolution_m,
+                           layout=cfg.episode.layout)
+        except (ScenarioError, OSError) as exc:
+            why = str(exc)
+            raise ExperimentError(why if why.startswith(s) else f"scenario {s}: {why}") from None
+
+
 def run_one(cfg: Config, key: tuple, cores_cache: dict[tuple, Cores]) -> tuple[Config, Any]:
     """One run of an experiment, `key` its (scenario, controller, samples, seed): its
     configuration and its episode. The services' cores are kept in `cores_cache` per
@@ -260,6 +273,7 @@ def experiment(cfg: Config, scenarios: list[str], controllers: list[str], sample
     """Run what is missing from `out/runs.jsonl` (in `jobs` worker processes when more
     than 1; by `runner` if given: deploy/sim/cluster.py's on a Ray cluster) and return
     every run there; deploy.analysis.summary writes what they show."""
+    check_scenarios(cfg, scenarios)
     out.mkdir(parents=True, exist_ok=True)
     runs_path = out / "runs.jsonl"
     existing = read_runs(runs_path)
