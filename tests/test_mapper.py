@@ -116,3 +116,39 @@ def test_occluded_cells_in_view_are_inpainted_from_the_ground_and_stay_uncertain
     assert (out_low.mean[195:205, 251:254] > 0.1).all()
     assert (out.mean[shadow] <= 2.0 + 1e-3).all()
     assert (out.mean[fused.observed] == fused.mean[fused.observed]).all()
+
+
+def test_the_shadow_behind_a_hill_continues_the_hill_and_a_box_top_stays_an_occluder():
+    """A ridge 1.2 m high (a raised cosine 12 m wide across the map, 14 m ahead) is ground
+    the robot reaches over gentle slopes: its crest is a source, and the shadow behind it
+    continues from the crest instead of dropping to the robot's height (a cliff at the
+    crest that Eq. occupied would take for an obstacle). A box 1.2 m high whose top the
+    camera sees is reached over no such slope: its top is not a source."""
+    x = (np.arange(400) + 0.5) * 0.2
+    d = np.abs(x - 54.0)
+    ridge = np.where(d < 6.0, 0.6 * (1.0 + np.cos(2.0 * np.pi * d / 12.0)), 0.0)
+    hm = np.tile(ridge[None, :], (400, 1)).astype(np.float32)
+    state = core.initial_map(P, 40.0, 40.0, 0.0)
+    depth, pos, rot, _ = frame(hm, 40.0, 40.0, 0.0)
+    fused = core.fuse_depth(P, state, depth, CAM.intrinsics, pos, rot)
+    out = core.inpaint_occluded(P, fused, 40.0, 40.0, 0.0, 0.0)
+    row = out.mean[200]
+    last = 220 + np.flatnonzero(fused.observed[200, 220:330])[-1]   # the shadow starts after
+    assert not fused.observed[200, last + 1:last + 30].any()
+    crest = row[last]
+    assert crest > 1.0                            # seen up to near the crest, 14 m ahead
+    # no step past Eq. occupied's threshold where the seen crest meets the shadow
+    assert np.abs(np.diff(row[last - 3:last + 10])).max() < P.ground_step_m
+    assert row[last + 1:last + 30].min() > 0.8 * crest
+
+    box = np.zeros((400, 400), np.float32)
+    box[190:210, 230:250] = 1.2          # lower than the camera (1.8 m): its top is seen
+    depth, pos, rot, _ = frame(box, 40.0, 40.0, 0.0)
+    fused = core.fuse_depth(P, state, depth, CAM.intrinsics, pos, rot)
+    top = fused.observed & (fused.mean > 1.0)
+    assert top.sum() > 20
+    reached = core.ground_reached(P, fused.mean, fused.observed, (200, 200))
+    assert reached[200, 200] and not (reached & top).any()
+    out = core.inpaint_occluded(P, fused, 40.0, 40.0, 0.0, 0.0)
+    shadow = ~fused.observed[195:205, 252:270]
+    assert shadow.any() and np.abs(out.mean[195:205, 252:270][shadow]).max() < 0.15

@@ -49,12 +49,17 @@ class MapperParams:
     min_variance: float
     inpaint_radius_cells: int
     occluder_height_m: float
+    ground_step_m: float              # derived: the most ground rises from cell to cell, the
+                                      # steepest slope Eq. occupied takes for ground
+                                      # (planner.grad_sq_threshold) over one cell
     hfov_rad: float                   # derived: sensor.hfov_deg
     range_m: float                    # [sensor]
 
     @classmethod
     def from_config(cls, cfg: Config, origin: tuple[float, float] = (0.0, 0.0)) -> MapperParams:
         return by_name(cls, cfg.mapper, cfg.sensor, origin=origin,
+                       ground_step_m=math.sqrt(cfg.planner.grad_sq_threshold)
+                       * cfg.mapper.resolution_m,
                        hfov_rad=math.radians(cfg.sensor.hfov_deg))
 
 
@@ -147,15 +152,50 @@ def fov_mask(p: MapperParams, x: float, y: float, yaw: float) -> tuple[np.ndarra
     return inside, rows, cols
 
 
+def ground_reached(p: MapperParams, mean: np.ndarray, observed: np.ndarray,
+                   robot: tuple[int, int]) -> np.ndarray:
+    """Cells (bool, the window's shape) the robot's cell `robot` (row, col) reaches over
+    ground: through observed cells, none of which differs from a 4-neighbour by more than
+    `ground_step_m`. Far ground is seen by every other pixel row, so an unobserved cell
+    beside observed ones counts at their mean. A wall's face breaks the way (the cells on
+    both sides of the step are left out), so the top of a box is not reached; a slope is.
+    Nothing where the robot's own cell is not such a cell."""
+    seen = observed.astype(np.float32)
+    count = cv2.boxFilter(seen, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    total = cv2.boxFilter(mean * seen, -1, (3, 3), normalize=False,
+                          borderType=cv2.BORDER_CONSTANT)
+    known = count > 0
+    mean = np.where(observed, mean, total / np.maximum(count, 1.0))
+    rough = ~known
+    for axis in (0, 1):
+        step = np.abs(np.diff(mean, axis=axis)) > p.ground_step_m
+        both = known[1:] & known[:-1] if axis == 0 else known[:, 1:] & known[:, :-1]
+        step &= both
+        if axis == 0:
+            rough[1:] |= step
+            rough[:-1] |= step
+        else:
+            rough[:, 1:] |= step
+            rough[:, :-1] |= step
+    r, c = robot
+    inside = 0 <= r < mean.shape[0] and 0 <= c < mean.shape[1]
+    if not inside or rough[r, c]:
+        return np.zeros_like(observed)
+    _, labels = cv2.connectedComponents((~rough).astype(np.uint8), connectivity=4)
+    return labels == labels[r, c]
+
+
 def inpaint_occluded(p: MapperParams, state: MapState, x: float, y: float, z: float, yaw: float
                      ) -> MapState:
     """Telea-inpaint the mean of never-observed cells inside the field of view.
 
     Occluders (observed cells more than `occluder_height_m` above the robot's
-    ground z) are not sources: their height says nothing about what stands
-    behind them, so they enter Telea at the free-space value z and the shadow
-    is filled from the ground around it. The window is padded by replication
-    (so Telea has context at its edge) and any non-finite value is filled
+    ground z that are not `ground_reached`) are not sources: their height says
+    nothing about what stands behind them, so they enter Telea at the free-space
+    value z and the shadow is filled from the ground around it. A hill's crest
+    is ground, however high: the shadow behind it continues the hill instead of
+    dropping to z, which would put a cliff at the crest. The window is padded by
+    replication (so Telea has context at its edge) and any non-finite value is filled
     before inpainting (NaNs would leak). Variance is left at the prior:
     inpainting is a guess, not an observation.
     """
@@ -167,8 +207,13 @@ def inpaint_occluded(p: MapperParams, state: MapState, x: float, y: float, z: fl
     bad = ~np.isfinite(window)
     if bad.any():
         window[bad] = np.nanmedian(np.where(bad, np.nan, window)) if (~bad).any() else z
-    source = np.where(state.observed[rows, cols] & (window > z + p.occluder_height_m),
-                      np.float32(z), window)
+    observed = state.observed[rows, cols]
+    high = observed & (window > z + p.occluder_height_m)
+    if high.any():
+        robot = (int((y - p.origin[1]) / p.resolution_m) - rows.start,
+                 int((x - p.origin[0]) / p.resolution_m) - cols.start)
+        high &= ~ground_reached(p, window, observed, robot)
+    source = np.where(high, np.float32(z), window)
     # OpenCV's float32 Telea returns garbage (4.14 and 5.0 alike, docs/mapper.md):
     # inpaint a uint16 quantisation over the window's own range instead.
     lo, hi = float(source.min()), float(source.max())
