@@ -136,6 +136,28 @@ def test_a_heightmap_beside_the_file_is_the_terrain_resampled_to_the_grid(tmp_pa
         build(load_spec(tmp_path / "w.toml"), 0, 0.2)
 
 
+def test_a_ridge_is_added_to_the_terrain_and_round_trips(tmp_path):
+    """A ridge (`ridge_*` of [terrain]) on flat ground is a raised cosine across its crest
+    line, as a float64 reference computes it at every cell's centre; its file reads back
+    to the same spec."""
+    import tomllib
+    text = GOOD.replace('[terrain]\nkind = "waves"\nseed = 872',
+                        '[terrain]\nkind = "flat"\nridge_height_m = 1.3\nridge_width_m = 14.0\n'
+                        'ridge_x = 40.0\nridge_y = 30.0\nridge_yaw = 1.8')
+    spec = parse_spec(tomllib.loads(text))
+    assert parse_spec(tomllib.loads(spec_toml(spec))) == spec
+    scn = build(spec, 0, 0.2)
+    c = (np.arange(400, dtype=np.float64) + 0.5) * 0.2
+    xx, yy = np.meshgrid(c, c, indexing="xy")
+    d = np.abs(-(xx - 40.0) * math.sin(1.8) + (yy - 30.0) * math.cos(1.8))
+    ref = np.where(d < 7.0, 1.3 * (1.0 + np.cos(2.0 * np.pi * d / 14.0)) / 2.0, 0.0)
+    np.testing.assert_allclose(scn.terrain, ref, rtol=0, atol=1e-7)   # float32 rounding
+    assert scn.terrain.max() > 1.29 and (scn.terrain == 0.0).mean() > 0.5
+    (tmp_path / "r.toml").write_text(text.replace("ridge_width_m = 14.0", "ridge_width_m = 0.0"))
+    with pytest.raises(ScenarioError, match="ridge_width_m: must be > 0"):
+        load_spec(tmp_path / "r.toml")
+
+
 def test_a_generated_world_is_reproducible_from_its_seed_and_feasible():
     """corner seed 2 drawn again is the committed held-out world: its draw (occluder,
     start, goal, terrain, the hidden obstacle's size) exactly; the hidden obstacle's place
@@ -164,6 +186,26 @@ def test_a_generated_world_is_reproducible_from_its_seed_and_feasible():
     assert all(math.hypot(o.x - a.start.x, o.y - a.start.y) > 15 for o in hidden(a))
     # every seed of the set drew a world of its own
     assert len({draw(load_spec(f)) for f in SET_FILES}) == len(SET_FILES)
+
+
+def test_a_crest_world_hides_a_rock_behind_a_ridge_across_the_way():
+    """The `crest` kind (not in the benchmark set) drawn from seed 1: a ridge across the
+    way between start and goal, no steeper than Eq. occupied's gradient threshold and
+    lower than its height threshold, and a hidden rock past the crest, lower than it,
+    that leaves a free way; the draw is the one made when the kind was written."""
+    from deploy.sim.generate import generate, reachable
+    spec = generate(CFG, "crest", 1, drive=False)
+    t = spec.terrain
+    assert spec.kind == "crest" and spec.generator["attempt"] == 1
+    assert t.ridge_height_m == pytest.approx(1.0766153587496945, abs=1e-12)
+    assert t.ridge_x == pytest.approx(30.483578888206296, abs=1e-12)
+    assert spec.start.x < t.ridge_x < spec.goal.x
+    assert math.pi * t.ridge_height_m / t.ridge_width_m < math.sqrt(CFG.planner.grad_sq_threshold)
+    assert t.ridge_height_m < CFG.planner.height_threshold_m
+    rocks = [o for o in spec.obstacles if o.hidden]
+    assert rocks and all(o.height < t.ridge_height_m and o.x > t.ridge_x for o in rocks)
+    assert math.hypot(rocks[0].x - 36.42978522656741, rocks[0].y - 37.2317008530848) < 1e-3
+    assert math.isfinite(reachable(build(spec, 0, 0.2)))
 
 
 def test_the_plant_refuses_commands_from_a_planner_that_runs_another_world():

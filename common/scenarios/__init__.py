@@ -94,6 +94,11 @@ class Terrain:
     resolution_m: float = 0.2     # heightmap: its cell size (resampled to the map's)
     height_min_m: float = 0.0     # heightmap .png: the elevation of pixel value 0 ...
     height_max_m: float = 1.0     # ... and of the largest value (255 or 65535)
+    ridge_height_m: float = 0.0   # a ridge added to any kind: its crest's height; 0 = none
+    ridge_width_m: float = 12.0   # ... its width across, a raised cosine from foot to foot
+    ridge_x: float = 0.0          # ... a point of its crest line
+    ridge_y: float = 0.0
+    ridge_yaw: float = 0.0        # ... the crest line's direction
 
 
 @dataclass(frozen=True)
@@ -291,7 +296,11 @@ def parse_spec(data: dict[str, Any], where: str = "scenario", base: str = "") ->
     terrain = Terrain(tkind, _number(f"{where}.terrain", t, "amplitude_m", 0.25), seed, hm,
                       _number(f"{where}.terrain", t, "resolution_m", 0.2, positive=True),
                       _number(f"{where}.terrain", t, "height_min_m", 0.0),
-                      _number(f"{where}.terrain", t, "height_max_m", 1.0))
+                      _number(f"{where}.terrain", t, "height_max_m", 1.0),
+                      _number(f"{where}.terrain", t, "ridge_height_m", 0.0),
+                      _number(f"{where}.terrain", t, "ridge_width_m", 12.0, positive=True),
+                      *(_number(f"{where}.terrain", t, k, 0.0)
+                        for k in ("ridge_x", "ridge_y", "ridge_yaw")))
     obstacles = d.get("obstacle", [])
     if not isinstance(obstacles, list):
         raise ScenarioError(f"{where}.obstacle: expected [[obstacle]] tables")
@@ -399,6 +408,17 @@ def _waves(rng: np.random.Generator, n: int, res: float, amplitude: float) -> np
     return (amplitude * z / 6.0).astype(np.float32)
 
 
+def _ridge(t: Terrain, n: int, res: float) -> np.ndarray:
+    """The terrain's ridge on the grid: ridge_height_m (1 + cos(2 pi d / width)) / 2 at
+    distance d < width / 2 from its crest line, 0 beyond."""
+    c = (np.arange(n) + 0.5) * res
+    xx, yy = np.meshgrid(c, c, indexing="xy")
+    d = np.abs(-(xx - t.ridge_x) * math.sin(t.ridge_yaw) + (yy - t.ridge_y) * math.cos(t.ridge_yaw))
+    z = np.where(d < t.ridge_width_m / 2,
+                 0.5 * (1.0 + np.cos(2.0 * math.pi * d / t.ridge_width_m)), 0.0)
+    return (t.ridge_height_m * z).astype(np.float32)
+
+
 def _heightmap_file(spec: ScenarioSpec, n: int) -> np.ndarray:
     t = spec.terrain
     path = Path(spec.base or ".") / t.heightmap
@@ -454,6 +474,8 @@ def build(spec: ScenarioSpec, seed: int = 0, resolution: float = 0.2) -> Scenari
         terrain = np.zeros((n, n), np.float32)
     else:
         terrain = _heightmap_file(spec, n)
+    if t.ridge_height_m:
+        terrain = terrain + _ridge(t, n, resolution)
     heightmap = _render(terrain, resolution, spec.obstacles)
     for a in (terrain, heightmap):
         a.setflags(write=False)           # shared: build_scenario caches the world

@@ -777,8 +777,9 @@ def _simulation_commands(sub: Any) -> None:
                         "generate: the world of --kind and --seed (default 1); set: "
                         "--per-kind worlds of every kind into OUT/tune and OUT/heldout")
     p.add_argument("--plot", metavar="FILE.png", help="show: write the top-down picture")
-    p.add_argument("--kind", help="generate: the world's kind (deploy/sim/generate.py KINDS); "
-                                  "set: only these kinds (comma-separated)")
+    p.add_argument("--kind", help="generate: the world's kind (deploy/sim/generate.py "
+                                  "ALL_KINDS); set: only these kinds (comma-separated; "
+                                  "default: the benchmark's four, KINDS)")
     p.add_argument("--out", help="export, generate: the file (default: print it); "
                                  "set: the directory")
     p.add_argument("--per-kind", type=_positive_int, default=16,

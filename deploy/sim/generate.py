@@ -10,7 +10,10 @@ open ground round it, turned round at a square corner; `street`, buildings on bo
 sides and a street turning left into one 8-11 m wide, whose far side keeps the turn
 tight; `trees`, a tree line along the road (trunks every 2.2 m), and a field behind it
 reached round the row's end and back; `hedge`, a solid hedge beside the road at up to
-15 degrees to it, and the goal behind it.
+15 degrees to it, and the goal behind it. A fifth kind, not in the benchmark set, hides
+behind terrain instead: `crest`, a ridge 1.0-1.4 m high across the way (a raised cosine,
+no steeper than Eq. occupied's gradient threshold) and rocks 0.6-1.0 m high behind its
+crest.
 
 How a world is drawn (`generate`): the kind draws start, goal and occluders from
 `[kind, seed, attempt]`; the prescient controller drives that world once (`probe_config`:
@@ -38,7 +41,8 @@ from common.config import Config
 from common.scenarios import Obstacle, Pose2, ScenarioSpec, Terrain, build
 from services.plant.dynamics import S
 
-KINDS = ("corner", "street", "trees", "hedge")
+KINDS = ("corner", "street", "trees", "hedge")     # the benchmark set's (`write_set`)
+ALL_KINDS = KINDS + ("crest",)                      # what `generate` draws
 CLEARANCE_M = 1.4       # the free way round: the footprint's half width and a margin
 ATTEMPTS = 60
 FROM_START_M = 15.0     # hidden obstacles stand at least this far from the start
@@ -52,11 +56,15 @@ class GenerateError(ValueError):
 
 @dataclass(frozen=True)
 class Draft:
-    """A drawn world before its hidden obstacles: start, goal and the occluders."""
+    """A drawn world before its hidden obstacles: start, goal and the occluders (or the
+    terrain's ridge), and what the hidden obstacles are."""
     start: Pose2
     goal: Pose2
     occluders: tuple[Obstacle, ...]
     description: str
+    ridge: tuple[tuple[str, float], ...] = ()          # Terrain's ridge_* fields, if any
+    behind: str = "the occluder"
+    hidden_height_m: tuple[float, float] = (1.8, 2.5)
 
 
 def _street(rng: np.random.Generator) -> Draft:
@@ -125,7 +133,26 @@ def _corner(rng: np.random.Generator) -> Draft:
                  "side, round a square corner.")
 
 
-_DRAW = {"street": _street, "hedge": _hedge, "trees": _trees, "corner": _corner}
+def _crest(rng: np.random.Generator) -> Draft:
+    y0 = float(rng.uniform(25, 55))
+    xr = float(rng.uniform(28, 40))                  # where the crest line crosses the road
+    yaw = math.pi / 2 + float(rng.uniform(-0.35, 0.35))
+    # below Eq. occupied's height threshold (1.5 m against the ground under the vehicle),
+    # as wide as keeps its steepest slope, pi h / w, under 0.35 (its gradient threshold 0.5)
+    h = float(rng.uniform(1.0, 1.4))
+    w = float(rng.uniform(9.0 * h, 18.0))
+    gx = xr + float(rng.uniform(18, 30))
+    gy = y0 + float(rng.uniform(-10, 10))
+    return Draft(Pose2(8.0, y0, 0.0), Pose2(gx, gy, 0.0), (),
+                 f"Open ground and a ridge {h:.1f} m high and {w:.0f} m wide across the way, "
+                 f"at {math.degrees(yaw - math.pi / 2):.0f} degrees to it; the goal lies beyond.",
+                 ridge=(("ridge_height_m", h), ("ridge_width_m", w), ("ridge_x", xr),
+                        ("ridge_y", y0), ("ridge_yaw", yaw)),
+                 behind="the crest", hidden_height_m=(0.6, 1.0))
+
+
+_DRAW = {"street": _street, "hedge": _hedge, "trees": _trees, "corner": _corner,
+         "crest": _crest}
 
 
 # ----------------------------------------------------------------------------- checks
@@ -192,7 +219,8 @@ def _drive(cfg: Config, spec: ScenarioSpec):
 
 
 def place_hidden(cfg: Config, rng: np.random.Generator, base: ScenarioSpec, path: np.ndarray,
-                 occluders: tuple[Obstacle, ...]) -> tuple[Obstacle, ...]:
+                 occluders: tuple[Obstacle, ...], heights: tuple[float, float] = (1.8, 2.5)
+                 ) -> tuple[Obstacle, ...]:
     """One or two obstacles on the fast line `path` (the probe's 10 Hz (t, X, Y, V, psi)),
     each where the camera driven along that line first sees it too late to stop from the
     speed it has there, or never before reaching it; clear of the occluders. () if no
@@ -207,7 +235,7 @@ def place_hidden(cfg: Config, rng: np.random.Generator, base: ScenarioSpec, path
         t, x, y, v, psi = path[i]
         lateral = float(rng.uniform(-1.0, 1.0))
         ob = Obstacle("cylinder", float(x - math.sin(psi) * lateral),
-                      float(y + math.cos(psi) * lateral), float(rng.uniform(1.8, 2.5)),
+                      float(y + math.cos(psi) * lateral), float(rng.uniform(*heights)),
                       radius=float(rng.uniform(0.8, 1.3)), hidden=True)
         if any(float(o.distance(np.array(ob.x), np.array(ob.y))) < ob.radius + 1.0
                for o in occluders):
@@ -233,13 +261,14 @@ def generate(cfg: Config, kind: str, seed: int, drive: bool = True) -> ScenarioS
     obstacles placed there (`place_hidden`) that still leave a free way, which (with
     `drive`) the prescient controller drives to the goal."""
     if kind not in _DRAW:
-        raise GenerateError(f"unknown kind {kind!r}; choose one of {', '.join(KINDS)}")
+        raise GenerateError(f"unknown kind {kind!r}; choose one of {', '.join(ALL_KINDS)}")
     why: list[str] = []
     for attempt in range(ATTEMPTS):
-        rng = np.random.default_rng([KINDS.index(kind), seed, attempt])
+        rng = np.random.default_rng([ALL_KINDS.index(kind), seed, attempt])
         d = _DRAW[kind](rng)
         base = ScenarioSpec(f"{kind}-{seed:04d}", d.description, d.start, d.goal, d.occluders,
-                            Terrain("waves", 0.25, int(rng.integers(0, 2 ** 31))), kind=kind)
+                            Terrain("waves", 0.25, int(rng.integers(0, 2 ** 31)),
+                                    **dict(d.ridge)), kind=kind)
         if not math.isfinite(reachable(build(base, 0, cfg.mapper.resolution_m))):
             why.append("the occluders close the way")
             continue
@@ -249,14 +278,14 @@ def generate(cfg: Config, kind: str, seed: int, drive: bool = True) -> ScenarioS
             continue
         every = max(1, int(round(cfg.plant.rate_hz * cfg.planner.dt_s)))
         path = probe.trajectory[::every][:, [0, 1 + S.X, 1 + S.Y, 1 + S.V, 1 + S.PSI]]
-        hidden = place_hidden(cfg, rng, base, path, d.occluders)
+        hidden = place_hidden(cfg, rng, base, path, d.occluders, d.hidden_height_m)
         if not hidden:
             why.append("no place on the fast line is seen too late")
             continue
         n = len(hidden)
         spec = ScenarioSpec(
-            base.name, f"{d.description} {n} obstacle{'s' if n > 1 else ''} behind the "
-            f"occluder stand{'' if n > 1 else 's'} on the fast line, seen too late to stop for "
+            base.name, f"{d.description} {n} obstacle{'s' if n > 1 else ''} behind "
+            f"{d.behind} stand{'' if n > 1 else 's'} on the fast line, seen too late to stop for "
             "a vehicle that takes the unseen ground for free.", d.start, d.goal,
             d.occluders + hidden, base.terrain,
             kind=kind, generator={"kind": kind, "seed": seed, "attempt": attempt,
@@ -295,14 +324,14 @@ def _draw_one(job: tuple[Config, str, int, str]) -> str:
 
 def write_set(cfg: Config, out: Path, per_kind: int, kinds: str | None = None,
               jobs: int = 1) -> list[Path]:
-    """The benchmark set: seeds 1 .. per_kind of every kind (or of `kinds`, comma-separated)
+    """The benchmark set: seeds 1 .. per_kind of its kinds (KINDS; or `kinds`, comma-separated)
     into out/tune (odd seeds) and out/heldout (even seeds); worlds already there are kept.
     A seed without a feasible world does not stop the others (GenerateError at the end)."""
     import multiprocessing
     chosen = KINDS if not kinds else tuple(k.strip() for k in kinds.split(","))
     for k in chosen:
         if k not in _DRAW:
-            raise GenerateError(f"unknown kind {k!r}; choose one of {', '.join(KINDS)}")
+            raise GenerateError(f"unknown kind {k!r}; choose one of {', '.join(ALL_KINDS)}")
     # seed by seed, every kind in turn: a set stopped early still has every kind
     todo = [(cfg, k, s, str(set_path(out, k, s))) for s in range(1, per_kind + 1)
             for k in chosen if not set_path(out, k, s).exists()]
