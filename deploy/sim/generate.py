@@ -1,6 +1,6 @@
 """`vamppi scenario generate`: procedural occluded worlds, drawn from a kind and a seed.
 
-The paper's problem, in four geometries: an occluder stands beside or across the way to
+The paper's problem, in five geometries: an occluder stands beside or across the way to
 the goal, and one or two obstacles stand behind it on the fast line, where the camera of a
 vehicle that drives that line sees them too late to stop. A free way round them stays, so
 a controller that knows the map (the prescient one) can take it at speed.
