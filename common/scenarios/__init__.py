@@ -395,9 +395,14 @@ def spec_of(name: str, layout: int = 0) -> ScenarioSpec:
 
 
 # ----------------------------------------------------------------------------- building
-def _waves(rng: np.random.Generator, n: int, res: float, amplitude: float) -> np.ndarray:
+def _centres(n: int, res: float) -> tuple[np.ndarray, np.ndarray]:
+    """x and y (n, n) of the cells' centres, row 0 the southern edge."""
     c = (np.arange(n) + 0.5) * res
-    xx, yy = np.meshgrid(c, c, indexing="xy")
+    return np.meshgrid(c, c, indexing="xy")
+
+
+def _waves(rng: np.random.Generator, n: int, res: float, amplitude: float) -> np.ndarray:
+    xx, yy = _centres(n, res)
     z = np.zeros((n, n))
     for _ in range(6):
         wavelength = rng.uniform(15.0, 60.0)
@@ -411,8 +416,7 @@ def _waves(rng: np.random.Generator, n: int, res: float, amplitude: float) -> np
 def _ridge(t: Terrain, n: int, res: float) -> np.ndarray:
     """The terrain's ridge on the grid: ridge_height_m (1 + cos(2 pi d / width)) / 2 at
     distance d < width / 2 from its crest line, 0 beyond."""
-    c = (np.arange(n) + 0.5) * res
-    xx, yy = np.meshgrid(c, c, indexing="xy")
+    xx, yy = _centres(n, res)
     d = np.abs(-(xx - t.ridge_x) * math.sin(t.ridge_yaw) + (yy - t.ridge_y) * math.cos(t.ridge_yaw))
     z = np.where(d < t.ridge_width_m / 2,
                  0.5 * (1.0 + np.cos(2.0 * math.pi * d / t.ridge_width_m)), 0.0)

@@ -135,12 +135,16 @@ def fuse_depth(p: MapperParams, state: MapState, depth: np.ndarray, intrinsics: 
     return MapState(np.asarray(mean), np.asarray(var), np.asarray(obs))
 
 
+def cell_of(p: MapperParams, x: float, y: float) -> tuple[int, int]:
+    """The (row, col) of the cell under (x, y)."""
+    return int((y - p.origin[1]) / p.resolution_m), int((x - p.origin[0]) / p.resolution_m)
+
+
 def fov_mask(p: MapperParams, x: float, y: float, yaw: float) -> tuple[np.ndarray, slice, slice]:
     """Cells inside the camera's horizontal field of view and range, on the window
     (rows, cols) around the robot that contains them."""
     r = int(math.ceil(p.range_m / p.resolution_m)) + 2
-    ci = int((x - p.origin[0]) / p.resolution_m)
-    ri = int((y - p.origin[1]) / p.resolution_m)
+    ri, ci = cell_of(p, x, y)
     rows = slice(max(ri - r, 0), min(ri + r + 1, p.size_cells))
     cols = slice(max(ci - r, 0), min(ci + r + 1, p.size_cells))
     cy = (np.arange(rows.start, rows.stop) + 0.5) * p.resolution_m + p.origin[1]
@@ -166,17 +170,13 @@ def ground_reached(p: MapperParams, mean: np.ndarray, observed: np.ndarray,
                           borderType=cv2.BORDER_CONSTANT)
     known = count > 0
     mean = np.where(observed, mean, total / np.maximum(count, 1.0))
+    across = known[1:] & known[:-1] & (np.abs(np.diff(mean, axis=0)) > p.ground_step_m)
+    along = known[:, 1:] & known[:, :-1] & (np.abs(np.diff(mean, axis=1)) > p.ground_step_m)
     rough = ~known
-    for axis in (0, 1):
-        step = np.abs(np.diff(mean, axis=axis)) > p.ground_step_m
-        both = known[1:] & known[:-1] if axis == 0 else known[:, 1:] & known[:, :-1]
-        step &= both
-        if axis == 0:
-            rough[1:] |= step
-            rough[:-1] |= step
-        else:
-            rough[:, 1:] |= step
-            rough[:, :-1] |= step
+    rough[1:] |= across
+    rough[:-1] |= across
+    rough[:, 1:] |= along
+    rough[:, :-1] |= along
     r, c = robot
     inside = 0 <= r < mean.shape[0] and 0 <= c < mean.shape[1]
     if not inside or rough[r, c]:
@@ -210,9 +210,8 @@ def inpaint_occluded(p: MapperParams, state: MapState, x: float, y: float, z: fl
     observed = state.observed[rows, cols]
     high = observed & (window > z + p.occluder_height_m)
     if high.any():
-        robot = (int((y - p.origin[1]) / p.resolution_m) - rows.start,
-                 int((x - p.origin[0]) / p.resolution_m) - cols.start)
-        high &= ~ground_reached(p, window, observed, robot)
+        ri, ci = cell_of(p, x, y)
+        high &= ~ground_reached(p, window, observed, (ri - rows.start, ci - cols.start))
     source = np.where(high, np.float32(z), window)
     # OpenCV's float32 Telea returns garbage (4.14 and 5.0 alike, docs/mapper.md):
     # inpaint a uint16 quantisation over the window's own range instead.
