@@ -208,6 +208,26 @@ def test_a_crest_world_hides_a_rock_behind_a_ridge_across_the_way():
     assert math.isfinite(reachable(build(spec, 0, 0.2)))
 
 
+def test_a_sprint_world_hides_a_wall_across_a_long_run_beyond_the_cameras_range():
+    """The `sprint` kind (not in the benchmark set) drawn from seed 1: open ground, a run
+    along the map's diagonal, and one hidden wall across the straight line from start to
+    goal that leaves a free way round its end; the draw is the one made when the kind was
+    written (the probe's drive places it, so the pinned place checks that too)."""
+    from deploy.sim.generate import generate, reachable
+    spec = generate(CFG, "sprint", 1, drive=False)
+    assert spec.kind == "sprint" and spec.generator["attempt"] == 0
+    assert not [o for o in spec.obstacles if not o.hidden]
+    wall, = spec.obstacles
+    assert wall.kind == "box" and wall.half_y > 8 * wall.half_x
+    assert math.hypot(wall.x - 60.70432992944923, wall.y - 52.68229703076269) < 1e-3
+    assert math.hypot(spec.goal.x - spec.start.x, spec.goal.y - spec.start.y) > 90.0
+    s = np.linspace(0.0, 1.0, 2001)
+    line_x = spec.start.x + s * (spec.goal.x - spec.start.x)
+    line_y = spec.start.y + s * (spec.goal.y - spec.start.y)
+    assert wall.contains(line_x, line_y).any()
+    assert math.isfinite(reachable(build(spec, 0, 0.2)))
+
+
 def test_the_plant_refuses_commands_from_a_planner_that_runs_another_world():
     from deploy.sim.runner import Cores
     from services.plant import protocol

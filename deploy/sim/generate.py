@@ -1,6 +1,6 @@
 """`vamppi scenario generate`: procedural occluded worlds, drawn from a kind and a seed.
 
-The paper's problem, in five geometries: an occluder stands beside or across the way to
+The paper's problem, in six geometries: an occluder stands beside or across the way to
 the goal, and one or two obstacles stand behind it on the fast line, where the camera of a
 vehicle that drives that line sees them too late to stop. A free way round them stays, so
 a controller that knows the map (the prescient one) can take it at speed.
@@ -10,10 +10,12 @@ open ground round it, turned round at a square corner; `street`, buildings on bo
 sides and a street turning left into one 8-11 m wide, whose far side keeps the turn
 tight; `trees`, a tree line along the road (trunks every 2.2 m), and a field behind it
 reached round the row's end and back; `hedge`, a solid hedge beside the road at up to
-15 degrees to it, and the goal behind it. A fifth kind, not in the benchmark set, hides
-behind terrain instead: `crest`, a ridge 1.0-1.4 m high across the way (a raised cosine,
-no steeper than Eq. occupied's gradient threshold) and rocks 0.6-1.0 m high behind its
-crest.
+15 degrees to it, and the goal behind it. Two more kinds are not in the benchmark set.
+`crest` hides behind terrain: a ridge 1.0-1.4 m high across the way (a raised cosine, no
+steeper than Eq. occupied's gradient threshold) and rocks 0.6-1.0 m high behind its crest.
+`sprint` hides behind the camera's range: a run of some 94 m along the map's diagonal,
+fast enough that the distance to stop outgrows the range, and one wall across it whose
+gap lies to one side.
 
 How a world is drawn (`generate`): the kind draws start, goal and occluders from
 `[kind, seed, attempt]`; the prescient controller drives that world once (`probe_config`:
@@ -42,7 +44,7 @@ from common.scenarios import Obstacle, Pose2, ScenarioSpec, Terrain, build
 from services.plant.dynamics import S
 
 KINDS = ("corner", "street", "trees", "hedge")     # the benchmark set's (`write_set`)
-ALL_KINDS = KINDS + ("crest",)                      # what `generate` draws
+ALL_KINDS = KINDS + ("crest", "sprint")            # what `generate` draws
 CLEARANCE_M = 1.4       # the free way round: the footprint's half width and a margin
 ATTEMPTS = 60
 FROM_START_M = 15.0     # hidden obstacles stand at least this far from the start
@@ -65,6 +67,7 @@ class Draft:
     ridge: tuple[tuple[str, float], ...] = ()          # Terrain's ridge_* fields, if any
     behind: str = "the occluder"
     hidden_height_m: tuple[float, float] = (1.8, 2.5)
+    hidden_shape: str = "cylinder"     # or "wall": one wall across the fast line, a gap beside
 
 
 def _street(rng: np.random.Generator) -> Draft:
@@ -151,8 +154,19 @@ def _crest(rng: np.random.Generator) -> Draft:
                  behind="the crest", hidden_height_m=(0.6, 1.0))
 
 
+def _sprint(rng: np.random.Generator) -> Draft:
+    sx, sy = float(rng.uniform(5, 9)), float(rng.uniform(5, 9))
+    gx, gy = float(rng.uniform(71, 75)), float(rng.uniform(71, 75))
+    yaw = math.atan2(gy - sy, gx - sx)
+    return Draft(Pose2(sx, sy, yaw), Pose2(gx, gy, yaw), (),
+                 f"A run of {math.hypot(gx - sx, gy - sy):.0f} m over open ground along the "
+                 "map's diagonal; the camera's 25 m range is all that hides what lies ahead.",
+                 behind="the edge of the camera's range", hidden_height_m=(0.8, 1.2),
+                 hidden_shape="wall")
+
+
 _DRAW = {"street": _street, "hedge": _hedge, "trees": _trees, "corner": _corner,
-         "crest": _crest}
+         "crest": _crest, "sprint": _sprint}
 
 
 # ----------------------------------------------------------------------------- checks
@@ -218,25 +232,39 @@ def _drive(cfg: Config, spec: ScenarioSpec):
         return run_episode(probe_config(cfg, str(path)))
 
 
+def _hidden_at(rng: np.random.Generator, x: float, y: float, psi: float,
+               heights: tuple[float, float], shape: str) -> Obstacle:
+    """A hidden obstacle on the fast line at (x, y), heading psi: a cylinder up to 1 m to
+    either side of it, or a wall across it 20-26 m long that reaches 6-9 m past the line on
+    one side (the gap lies beyond) and the rest of its length on the other."""
+    if shape == "wall":
+        half = float(rng.uniform(10.0, 13.0))
+        lateral = float(rng.choice((-1.0, 1.0))) * (half - float(rng.uniform(6.0, 9.0)))
+        return Obstacle("box", float(x - math.sin(psi) * lateral),
+                        float(y + math.cos(psi) * lateral), float(rng.uniform(*heights)),
+                        half_x=0.6, half_y=half, yaw=float(psi), hidden=True)
+    lateral = float(rng.uniform(-1.0, 1.0))
+    return Obstacle("cylinder", float(x - math.sin(psi) * lateral),
+                    float(y + math.cos(psi) * lateral), float(rng.uniform(*heights)),
+                    radius=float(rng.uniform(0.8, 1.3)), hidden=True)
+
+
 def place_hidden(cfg: Config, rng: np.random.Generator, base: ScenarioSpec, path: np.ndarray,
-                 occluders: tuple[Obstacle, ...], heights: tuple[float, float] = (1.8, 2.5)
-                 ) -> tuple[Obstacle, ...]:
-    """One or two obstacles on the fast line `path` (the probe's 10 Hz (t, X, Y, V, psi)),
-    each where the camera driven along that line first sees it too late to stop from the
-    speed it has there, or never before reaching it; clear of the occluders. () if no
-    candidate qualifies."""
+                 occluders: tuple[Obstacle, ...], heights: tuple[float, float] = (1.8, 2.5),
+                 shape: str = "cylinder") -> tuple[Obstacle, ...]:
+    """One or two obstacles (`_hidden_at`; one wall) on the fast line `path` (the probe's
+    10 Hz (t, X, Y, V, psi)), each where the camera driven along that line first sees it
+    too late to stop from the speed it has there, or never before reaching it; clear of the
+    occluders. () if no candidate qualifies."""
     from deploy.analysis.reveal import first_sightings, poses_of_path
-    want = 1 + int(rng.uniform() < 0.5)
+    want = 1 if shape == "wall" else 1 + int(rng.uniform() < 0.5)
     found: list[Obstacle] = []
     idx = [i for i in range(len(path)) if path[i, 3] >= 3.0
            and math.hypot(path[i, 1] - base.start.x, path[i, 2] - base.start.y) > FROM_START_M
            and math.hypot(path[i, 1] - base.goal.x, path[i, 2] - base.goal.y) > 6.0]
     for i in rng.permutation(idx)[:CANDIDATES]:
         t, x, y, v, psi = path[i]
-        lateral = float(rng.uniform(-1.0, 1.0))
-        ob = Obstacle("cylinder", float(x - math.sin(psi) * lateral),
-                      float(y + math.cos(psi) * lateral), float(rng.uniform(*heights)),
-                      radius=float(rng.uniform(0.8, 1.3)), hidden=True)
+        ob = _hidden_at(rng, x, y, psi, heights, shape)
         if any(float(o.distance(np.array(ob.x), np.array(ob.y))) < ob.radius + 1.0
                for o in occluders):
             continue
@@ -278,7 +306,8 @@ def generate(cfg: Config, kind: str, seed: int, drive: bool = True) -> ScenarioS
             continue
         every = max(1, int(round(cfg.plant.rate_hz * cfg.planner.dt_s)))
         path = probe.trajectory[::every][:, [0, 1 + S.X, 1 + S.Y, 1 + S.V, 1 + S.PSI]]
-        hidden = place_hidden(cfg, rng, base, path, d.occluders, d.hidden_height_m)
+        hidden = place_hidden(cfg, rng, base, path, d.occluders, d.hidden_height_m,
+                              d.hidden_shape)
         if not hidden:
             why.append("no place on the fast line is seen too late")
             continue
