@@ -76,6 +76,36 @@ class Obstacle:
         return np.hypot(np.maximum(0.0, np.abs(u) - self.half_x),
                         np.maximum(0.0, np.abs(v) - self.half_y))
 
+    def corners(self) -> np.ndarray:
+        """A box's four corners (4, 2), world frame, in order round it."""
+        u = np.array([1.0, -1.0, -1.0, 1.0]) * self.half_x
+        v = np.array([1.0, 1.0, -1.0, -1.0]) * self.half_y
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        return np.stack([self.x + u * c - v * s, self.y + u * s + v * c], axis=-1)
+
+    def clearance(self, other: Obstacle) -> float:
+        """The gap between two footprints, 0 where they touch or overlap. Both are convex,
+        so apart, the gap is reached at a cylinder's centre or a box's corner against the
+        other's outline; two boxes may cross with no corner inside the other (a plus sign),
+        which their edges crossing tells."""
+        if self.kind == "cylinder" or other.kind == "cylinder":
+            a, b = (self, other) if self.kind == "cylinder" else (other, self)
+            return float(max(0.0, b.distance(a.x, a.y) - a.radius))
+        pa, pb = self.corners(), other.corners()
+        if any(_segments_cross(pa[i], pa[(i + 1) % 4], pb[j], pb[(j + 1) % 4])
+               for i in range(4) for j in range(4)):
+            return 0.0
+        return float(min(np.min(other.distance(pa[:, 0], pa[:, 1])),
+                         np.min(self.distance(pb[:, 0], pb[:, 1]))))
+
+
+def _segments_cross(p: np.ndarray, q: np.ndarray, r: np.ndarray, s: np.ndarray) -> bool:
+    """Whether the segments p-q and r-s meet (touching counts)."""
+    def side(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> float:
+        return float((b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]))
+    d1, d2, d3, d4 = side(r, s, p), side(r, s, q), side(p, q, r), side(p, q, s)
+    return d1 * d2 <= 0.0 and d3 * d4 <= 0.0 and not (d1 == d2 == 0.0)
+
 
 @dataclass(frozen=True)
 class Pose2:

@@ -254,8 +254,8 @@ def place_hidden(cfg: Config, rng: np.random.Generator, base: ScenarioSpec, path
                  shape: str = "cylinder") -> tuple[Obstacle, ...]:
     """One or two obstacles (`_hidden_at`; one wall) on the fast line `path` (the probe's
     10 Hz (t, X, Y, V, psi)), each where the camera driven along that line first sees it
-    too late to stop from the speed it has there, or never before reaching it; clear of the
-    occluders. () if no candidate qualifies."""
+    too late to stop from the speed it has there, or never before reaching it; 1 m clear
+    of the occluders' footprints (`Obstacle.clearance`). () if no candidate qualifies."""
     from deploy.analysis.reveal import first_sightings, poses_of_path
     want = 1 if shape == "wall" else 1 + int(rng.uniform() < 0.5)
     found: list[Obstacle] = []
@@ -265,8 +265,7 @@ def place_hidden(cfg: Config, rng: np.random.Generator, base: ScenarioSpec, path
     for i in rng.permutation(idx)[:CANDIDATES]:
         t, x, y, v, psi = path[i]
         ob = _hidden_at(rng, x, y, psi, heights, shape)
-        if any(float(o.distance(np.array(ob.x), np.array(ob.y))) < ob.radius + 1.0
-               for o in occluders):
+        if any(o.clearance(ob) < 1.0 for o in occluders):
             continue
         if any(math.hypot(ob.x - f.x, ob.y - f.y) < 6.0 for f in found):
             continue
