@@ -229,25 +229,36 @@ def test_a_sprint_world_hides_a_wall_across_a_long_run_beyond_the_cameras_range(
 
 
 def _outline(o, n=4000):
-    """n points round an obstacle's footprint (a box's corners among them), world frame,
-    float64."""
-    t = np.linspace(0.0, 1.0, n // 4, endpoint=False)
+    """n points round an obstacle's footprint (a box's corners among them), world frame."""
     if o.kind == "cylinder":
         a = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
-        edge = np.stack([o.x + o.radius * np.cos(a), o.y + o.radius * np.sin(a)], axis=-1)
-    else:
-        c = o.corners()
-        edge = np.concatenate([c[i] + t[:, None] * (c[(i + 1) % 4] - c[i]) for i in range(4)])
-    return edge
+        return np.stack([o.x + o.radius * np.cos(a), o.y + o.radius * np.sin(a)], axis=-1)
+    c, t = o.corners(), np.linspace(0.0, 1.0, n // 4, endpoint=False)
+    return np.concatenate([c[i] + t[:, None] * (c[(i + 1) % 4] - c[i]) for i in range(4)])
+
+
+def _to_outline(o, p):
+    """Distance from points p (n, 2) to an obstacle's outline: to a circle, or the least
+    to a box's four edges as segments, float64."""
+    if o.kind == "cylinder":
+        return np.abs(np.hypot(p[:, 0] - o.x, p[:, 1] - o.y) - o.radius)
+    c = o.corners()
+    out = np.full(len(p), np.inf)
+    for a, b in zip(c, np.roll(c, -1, axis=0), strict=True):
+        t = np.clip(((p - a) @ (b - a)) / ((b - a) @ (b - a)), 0.0, 1.0)
+        out = np.minimum(out, np.hypot(*(p - a - t[:, None] * (b - a)).T))
+    return out
 
 
 def _gap(a, b):
-    """The slow, obvious gap: 0 if an outline point of one lies in the other, else the
-    least distance between the two outlines' points."""
+    """The slow, obvious gap: 0 if an outline point of one lies in the other; else the
+    least distance from either's outline points (a box's corners among them) to the
+    other's outline, which for two convex footprints apart is met at a corner or along
+    a circle."""
     pa, pb = _outline(a), _outline(b)
     if a.contains(pb[:, 0], pb[:, 1]).any() or b.contains(pa[:, 0], pa[:, 1]).any():
         return 0.0
-    return float(np.min(np.hypot(pa[:, None, 0] - pb[None, :, 0], pa[:, None, 1] - pb[None, :, 1])))
+    return float(min(_to_outline(b, pa).min(), _to_outline(a, pb).min()))
 
 
 def test_the_clearance_of_two_obstacles_is_the_gap_between_their_footprints():
@@ -266,11 +277,11 @@ def test_the_clearance_of_two_obstacles_is_the_gap_between_their_footprints():
                         half_y=rng.uniform(0.3, 6.0), yaw=rng.uniform(-np.pi, np.pi))
 
     worst = 0.0
-    for _ in range(60):
+    for _ in range(200):
         a, b = draw(), draw()
         assert a.clearance(b) == pytest.approx(b.clearance(a), abs=1e-12)
         worst = max(worst, abs(a.clearance(b) - _gap(a, b)))
-    assert worst < 3e-5          # the outlines' spacing: seen up to 1.1e-5
+    assert worst < 1.5e-6        # a circle of 4000 points: seen up to 8.7e-7
     wall = Obstacle("box", 0.0, 0.0, 1.0, half_x=0.6, half_y=12.0)
     near_its_end = Obstacle("cylinder", 0.0, 12.5, 3.0, radius=1.0)
     assert float(near_its_end.distance(wall.x, wall.y)) > 10.0
