@@ -263,9 +263,10 @@ def _gap(a, b):
 
 def test_the_clearance_of_two_obstacles_is_the_gap_between_their_footprints():
     """`Obstacle.clearance` (the generator keeps hidden obstacles 1 m clear of occluders)
-    against a dense sampling of both outlines, on fresh random cylinders and boxes; and
-    the cases a centre alone misses: a wall whose end reaches an occluder its centre is
-    far from, two boxes crossing like a plus sign with no corner inside the other."""
+    against each outline's points taken to the other's exact outline (`_gap`), on fresh
+    random cylinders and boxes; and the cases a centre alone misses: a wall whose end
+    reaches an occluder its centre is far from, two boxes crossing like a plus sign with
+    no corner inside the other."""
     from common.scenarios import Obstacle
     rng = np.random.default_rng()
 
