@@ -109,6 +109,7 @@ class MapperConfig:
     min_variance: float = _rng(0.0, lo_open=True)
     inpaint_radius_cells: int = _rng(1, 50)
     occluder_height_m: float = _rng(0.0)
+    fill_between_pixels: bool = _rng()
 
 
 @dataclass(frozen=True)
