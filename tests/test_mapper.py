@@ -11,6 +11,7 @@ from services.sensor.core import CameraParams, render
 
 CFG = load_config()
 P = core.MapperParams.from_config(CFG)
+PLAIN = core.MapperParams.from_config(load_config(overrides=["mapper.fill_between_pixels=false"]))
 CAM = CameraParams.from_config(CFG.sensor)
 
 
@@ -54,8 +55,8 @@ def test_fusion_matches_sequential_float64_kalman(rng):
     hm = (rng.normal(size=(400, 400)) * 0.05).astype(np.float32) + 0.3
     x, y, yaw = rng.uniform(20, 60), rng.uniform(20, 60), rng.uniform(-3, 3)
     depth, pos, rot, base = frame(hm, x, y, yaw)
-    state = core.initial_map(P, x, y, base[2])
-    got = core.fuse_depth(P, state, depth, CAM.intrinsics, pos, rot)
+    state = core.initial_map(PLAIN, x, y, base[2])
+    got = core.fuse_depth(PLAIN, state, depth, CAM.intrinsics, pos, rot)
     mean, var, ambiguous = reference_fuse(state, depth, CAM.intrinsics, pos, rot)
     seen = got.observed & ~state.observed & ~ambiguous
     assert seen.sum() > 500 and ambiguous.sum() < 0.05 * seen.sum()
@@ -228,7 +229,7 @@ def test_the_ground_between_pixel_rows_matches_a_float64_reference(rng):
     var = np.maximum(var, FILL.min_variance)
     for r, c in amb_lines:
         ambiguous[max(r - 1, 0):r + 2, max(c - 1, 0):c + 2] = True
-    plain = core.fuse_depth(P, state, depth, CAM.intrinsics, pos, rot)
+    plain = core.fuse_depth(PLAIN, state, depth, CAM.intrinsics, pos, rot)
     added = got.observed & ~plain.observed & ~ambiguous
     assert len(lines) > 2000 and added.sum() > 300, (len(lines), added.sum())
     ok = ~ambiguous
@@ -241,9 +242,9 @@ def test_the_ground_between_pixel_rows_matches_a_float64_reference(rng):
 def test_between_rows_the_stripes_are_measured_and_a_wall_s_foot_is_not_raised():
     hm = np.zeros((400, 400), np.float32)
     hm[180:220, 300:305] = 2.0                  # a wall 20 m ahead, 8 m wide
-    state = core.initial_map(P, 40.0, 40.0, 0.0)
+    state = core.initial_map(PLAIN, 40.0, 40.0, 0.0)
     depth, pos, rot, base = frame(hm, 40.0, 40.0, 0.0)
-    plain = core.fuse_depth(P, state, depth, CAM.intrinsics, pos, rot)
+    plain = core.fuse_depth(PLAIN, state, depth, CAM.intrinsics, pos, rot)
     filled = core.fuse_depth(FILL, state, depth, CAM.intrinsics, pos, rot)
     ahead = (slice(190, 210), slice(240, 290))   # 8-18 m ahead, 4 m wide: ground only
     assert plain.observed[ahead].mean() < 0.8 and filled.observed[ahead].all()
