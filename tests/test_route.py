@@ -94,7 +94,7 @@ def test_the_empty_lattices_field_is_dijkstras_and_open_ground_has_no_detour():
 
 @pytest.mark.parametrize("unseen", [False, True])
 def test_the_detour_round_a_wall_and_through_unseen_ground_is_dijkstras(rng, unseen):
-    """A random wall (a 1 m step, grown by the half width) and, for VA-MPPI, random unseen
+    """A random wall (a 1 m step, grown) and, for VA-MPPI, random unseen
     ground: swept to convergence, route.detour is Dijkstra's route minus the empty
     lattice's, capped; the deterministic controller (no variance) sees no unseen ground."""
     mean = np.zeros((N * K, N * K))
@@ -191,3 +191,26 @@ def test_a_route_cell_that_is_no_block_of_map_cells_is_refused():
     with pytest.raises(ConfigError, match=r"planner\.route_cell_m"):
         load_config(overrides=['planner.goal_distance="route"', "planner.route_cell_m=0.7"])
     load_config(overrides=['planner.goal_distance="route"', "planner.route_cell_m=0.4"])
+
+
+@pytest.mark.parametrize("offset", range(K))
+def test_a_passage_the_footprint_fits_through_stays_open_and_a_narrower_one_shuts(offset):
+    """Two walls 1 m high across the map, seen from the lattice: with a gap 0.6 m wider
+    than the footprint (the alleyway's 2.6 m beside its hidden cylinder, for a 2 m vehicle)
+    a row of lattice cells along it stays open, and with a gap 0.4 m narrower than the
+    footprint none does, wherever the gap lies on the lattice (`offset` map cells)."""
+    width = 2.0 * RP.half_width_m
+
+    def open_rows(gap):
+        """Lattice rows open all along that lie in the gap (a wall's flat top is ground)."""
+        mean = np.zeros((N * K, N * K))
+        lo, hi = 20 + offset, 20 + offset + int(round(gap / RES))      # the faces, cells
+        mean[lo - 5:lo, :] = 1.0
+        mean[hi:hi + 5, :] = 1.0
+        cost, _ = route.lattice_costs(RP, jnp.asarray(mean, jnp.float32), None, RES)
+        rows = np.isfinite(np.asarray(cost)[:, 2:-2]).all(axis=1)   # off the edge's rim
+        centre = (np.arange(N) + 0.5) * K
+        return (rows & (centre > lo) & (centre < hi)).sum()
+
+    assert open_rows(width + 0.6) >= 1
+    assert open_rows(width - 0.4) == 0

@@ -14,8 +14,9 @@ degrees at the vehicle's tightest turn or a straight piece as long. A move costs
 length times the mean cost per metre of the lattice cells it crosses:
 
 - closed (infinite) where the map shows an obstacle (an axis gradient or a step to a
-  neighbour past Eq. occupied's thresholds, grown by half the footprint's width, on more
-  than a quarter of the cell) and within half the footprint's length of the map's edge;
+  neighbour past Eq. occupied's thresholds, grown by half the footprint's width less half
+  a lattice cell and the one map cell the gradient marks beside a face, on more than a
+  quarter of the cell) and within half the footprint's length of the map's edge;
 - for VA-MPPI only, on ground the map has never observed (variance at the prior):
   `route_unseen_factor` driven straight, `route_unseen_turn_factor` turning (a vehicle
   that drives straight onto unseen ground has seen it ahead first; one that turns onto it
@@ -195,10 +196,13 @@ def lattice_costs(p: RouteParams, mean: Any, variance: Any | None, resolution: f
     closed = (jnp.pad(gx, ((0, 0), (1, 1))) | jnp.pad(gy, ((1, 1), (0, 0)))
               | jnp.pad(sx, ((0, 0), (1, 0))) | jnp.pad(sy, ((1, 0), (0, 0))))
     closed = closed.astype(jnp.float32)
-    # grown by the half width: an octagon, the union of a (2g+1) x (2d+1) box and its
+    # grown by the half width less what the marking and the lattice already add: the
+    # central gradient marks the ground cell beside a face, and a lattice cell is shut
+    # when a quarter of it is, so the whole half width shut passages the footprint fits
+    # through (docs/planner.md). An octagon, the union of a (2g+1) x (2d+1) box and its
     # transpose, each a max over rows then over columns (a box's max is separable; with
     # 2-D windows this function took 4.6 times as long)
-    g = int(round(p.half_width_m / resolution))
+    g = int(round(max(p.half_width_m - 0.5 * p.route_cell_m - resolution, 0.0) / resolution))
     d = int(round(g / math.sqrt(2.0)))
 
     def run_max(a: Any, n: int, axis: int) -> Any:
