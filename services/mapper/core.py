@@ -99,6 +99,15 @@ def measurement_variance(p: MapperParams, rng: jax.Array) -> jax.Array:
     return s * s
 
 
+def flat_cells(p: MapperParams, x: jax.Array, y: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The flat index row * n + col of the cells under world points (x, y), and whether
+    each lies on the map (the index is meaningless where it does not)."""
+    n = p.size_cells
+    col = jnp.floor((x - p.origin[0]) / p.resolution_m).astype(jnp.int32)
+    row = jnp.floor((y - p.origin[1]) / p.resolution_m).astype(jnp.int32)
+    return row * n + col, (col >= 0) & (col < n) & (row >= 0) & (row < n)
+
+
 BETWEEN_SAMPLES = 16      # points on the line between two pixel rows' hits: gaps to 16 cells
 
 
@@ -141,17 +150,9 @@ def between_rows(p: MapperParams, pw, rng, valid, cam_position, shape: tuple[int
     clear = jnp.maximum(ray_z - q[..., 2], 0.0)
     sigma = p.noise_sigma0_m + p.noise_k_per_m * r_far[..., None] ** 2 + clear
     weight = jnp.minimum(gap / ((s + 1.0) * res), 1.0)[..., None]
-    n_side = p.size_cells
-
-    def flat_of(x, y):
-        col = jnp.floor((x - p.origin[0]) / res).astype(jnp.int32)
-        row = jnp.floor((y - p.origin[1]) / res).astype(jnp.int32)
-        inside = (col >= 0) & (col < n_side) & (row >= 0) & (row < n_side)
-        return row * n_side + col, inside
-
-    cell, inside = flat_of(q[..., 0], q[..., 1])
-    c_near, _ = flat_of(near[..., 0], near[..., 1])
-    c_far, _ = flat_of(far[..., 0], far[..., 1])
+    cell, inside = flat_cells(p, q[..., 0], q[..., 1])
+    c_near, _ = flat_cells(p, near[..., 0], near[..., 1])
+    c_far, _ = flat_cells(p, far[..., 0], far[..., 1])
     keep = use[..., None] & inside & (cell != c_near[..., None]) & (cell != c_far[..., None])
     return (jnp.where(keep, cell, 0), jnp.where(keep, weight / (sigma * sigma), 0.0),
             q[..., 2])
@@ -167,12 +168,11 @@ def _fuse(p: MapperParams, mean, var, observed, depth, intrinsics, cam_position,
     pc = jnp.stack([(u - cx) / fx * d, (v - cy) / fy * d, d], axis=-1).reshape(-1, 3)
     pw = pc @ cam_rotation.T + cam_position
     rng = jnp.linalg.norm(pc, axis=-1)
-    col = jnp.floor((pw[:, 0] - p.origin[0]) / p.resolution_m).astype(jnp.int32)
-    row = jnp.floor((pw[:, 1] - p.origin[1]) / p.resolution_m).astype(jnp.int32)
+    cell, inside = flat_cells(p, pw[:, 0], pw[:, 1])
     n_side = p.size_cells
-    valid = (d.reshape(-1) > 0) & (col >= 0) & (col < n_side) & (row >= 0) & (row < n_side)
+    valid = (d.reshape(-1) > 0) & inside
     prec = jnp.where(valid, 1.0 / measurement_variance(p, rng), 0.0)
-    flat = jnp.where(valid, row * n_side + col, 0)
+    flat = jnp.where(valid, cell, 0)
     z = pw[:, 2]
     if p.fill_between_pixels:
         b_flat, b_prec, b_z = between_rows(p, pw, rng, valid, cam_position, (h, w))
