@@ -26,13 +26,17 @@ def test_variants_are_the_plan_sooner_its_last_control_held_then_coasting_or_bra
         assert (v[10:, 1] == force).all()
 
 
-def test_the_plan_is_priced_as_the_solver_priced_it():
-    """At 1 s of an alleyway episode (VA-MPPI, K = 64) the plan the planner sent, priced again,
-    costs what the planner reported for it: equal here. (Where a surface cost is paid the
-    two may differ by float32 rounding: the solve prices its plan with the JAX form of the
-    expected surface cost, `mppi.price` with the kernel form its samples get.)"""
-    cfg = load_config(overrides=['episode.scenario="alleyway"', 'planner.controller="va"',
-                                 "planner.samples=64"])
+@pytest.mark.parametrize("controller", ["va", "prescient"])
+def test_the_plan_is_priced_as_the_solver_priced_it(controller):
+    """At 1 s of an alleyway episode (K = 64) the plan the planner sent, priced again, costs
+    what the planner reported for it: equal here. (Where a surface cost is paid the two may
+    differ by float32 rounding: the solve prices its plan with the JAX form of the expected
+    surface cost, `mppi.price` with the kernel form its samples get.) With the route the
+    goal distance depends on the map: the prescient controller's plan is priced on the true
+    map it planned on (the hidden cylinder in its way), not the mapper's."""
+    cfg = load_config(overrides=['episode.scenario="alleyway"',
+                                 f'planner.controller="{controller}"', "planner.samples=64",
+                                 'planner.goal_distance="route"'])
     rows = plans(cfg, 1.0, shifts=(2,), tails=(20,))
     assert [r["plan"] for r in rows] == ["solver", "nominal", "2 sooner",
                                          "2 sooner, coasting from 20", "2 sooner, braking from 20"]

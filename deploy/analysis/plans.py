@@ -79,8 +79,10 @@ def plans(cfg: Config, at_s: float, shifts: tuple[int, ...] = SHIFTS,
         return mppi.price(params, mppi.map_view(params, mean, variance, origin, res, goal), x0,
                           u_prev, goal, candidates, jax.random.PRNGKey(0))
 
+    mean, variance = mppi.planning_map(params, cores.planner.truth, snap["mean"],
+                                       snap["variance"])       # the true map for prescient
     states, _, terms = price(*(jnp.asarray(a, jnp.float32) for a in (
-        snap["mean"], snap["variance"], snap["origin"], snap["x"], snap["u_prev"], cores.goal,
+        mean, variance, snap["origin"], snap["x"], snap["u_prev"], cores.goal,
         np.stack([c for _, c in named]))))
     states, terms = np.asarray(states), np.asarray(terms, np.float64)
     at = [int(round(t / dt)) for t in (2.0, 3.0)] + [states.shape[1] - 1]
