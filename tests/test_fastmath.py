@@ -33,6 +33,14 @@ def test_arctan2_in_every_quadrant_and_on_the_axes(rng):
     assert np.max(np.abs(got - want)) <= 3e-7         # XLA's own arctan2: 2.5e-7
 
 
+def test_arccos_over_its_domain_and_at_its_ends(rng):
+    x = np.concatenate([rng.uniform(-1, 1, 20000), 1 - rng.uniform(0, 1e-3, 2000),
+                        -1 + rng.uniform(0, 1e-3, 2000), [-1.0, 0.0, -0.0, 1.0]])
+    x = x.astype(np.float32)
+    got = np.asarray(jax.jit(fm.arccos)(_f32(x)), np.float64)
+    assert np.max(np.abs(got - np.arccos(x.astype(np.float64)))) <= 3e-7    # seen: 2.7e-7
+
+
 @pytest.mark.parametrize("scale", [1.0, 10.0, 1000.0])
 def test_sin_cos(rng, scale):
     x = np.concatenate([rng.uniform(-scale, scale, 20000), _edges()[:9]]).astype(np.float32)
@@ -52,4 +60,4 @@ def test_tan_over_steering_angles(rng):
 
 def test_fast_namespace_is_jax_numpy_otherwise():
     assert fm.FAST.tanh is jnp.tanh and fm.FAST.stack is jnp.stack
-    assert fm.FAST.arctan2 is fm.arctan2
+    assert fm.FAST.arctan2 is fm.arctan2 and fm.FAST.arccos is fm.arccos

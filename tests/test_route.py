@@ -146,7 +146,7 @@ def test_the_running_time_cost_prices_waiting_first_above_stopping_last():
     after standing 1 s, one before braking for 1 s. The paper's instants price the one
     that waits lower (it is fast at 4 s); the running cost prices it higher (it is
     farther from the goal at every step). And the running cost is 7/4 w_t mean(d/V) over
-    steps 1 .. N, in float64."""
+    steps 1 .. N, d at every fourth step and linear between, in float64."""
     pp = PlannerParams.from_config(CFG)
     n = pp.horizon
     drive = np.tile([0.0, 2500.0], (n - 10, 1))
@@ -163,9 +163,11 @@ def test_the_running_time_cost_prices_waiting_first_above_stopping_last():
         for form in ("instants", "running"):
             c = dataclasses.replace(pp.cost, time_cost=form)
             costs[form, name] = float(jax.jit(lambda st, c=c: time_cost(c, st, goal, m)[0])(states))
-        st = np.asarray(states, np.float64)[1:]
-        d = np.asarray(goal_distance(pp.cost, jnp.asarray(st, jnp.float32), goal), np.float64)
-        ref = pp.cost.w_time * 1.75 * np.mean(d / np.maximum(st[:, S.V], 1.0))
+        st = np.asarray(states, np.float64)
+        knots = [*range(0, n, 4), n]
+        dk = goal_distance(pp.cost, st[knots], np.asarray(goal, np.float64), np)
+        d = np.interp(np.arange(n + 1), knots, dk)[1:]
+        ref = pp.cost.w_time * 1.75 * np.mean(d / np.maximum(st[1:, S.V], 1.0))
         assert costs["running", name] == pytest.approx(ref, rel=1e-6)
     assert costs["instants", "wait first"] < costs["instants", "stop last"]
     assert costs["running", "wait first"] > costs["running", "stop last"]

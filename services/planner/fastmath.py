@@ -1,12 +1,13 @@
-"""Vectorisable float32 arctan, arctan2, sin, cos and tan for the planner's rollouts.
+"""Vectorisable float32 arctan, arctan2, arccos, sin, cos and tan for the planner.
 
-XLA:CPU evaluates `atan2`, `atan`, `sin`, `cos` and `tan` by calling scalar
+XLA:CPU evaluates `atan2`, `atan`, `acos`, `sin`, `cos` and `tan` by calling scalar
 library routines, 6 to 17 ns per element on this project's CPU, against about
 1 ns for the polynomials below, which compile to plain vector arithmetic. The
 bicycle model (services.plant.dynamics) calls about 25 of them per evaluation,
 nine evaluations per rollout step: they were three quarters of the rollout
 time (docs/benchmarks.md). `FAST` is a drop-in for `jax.numpy` as the model's
-`xp` argument: the same functions, these five replaced. Each is jitted, so a
+`xp` argument: the same functions, these six replaced (the running time cost's
+goal distances, costs.time_cost, use them too). Each is jitted, so a
 trace calls it instead of inlining its thirty-odd operations at every use
 (about 225 uses per rollout step): tracing and lowering the solver took 7 s
 with them inlined and 2 s as calls; XLA inlines the calls when it compiles, so
@@ -14,7 +15,7 @@ the program and its results are the same, bit for bit.
 
 Accuracy (tests/test_fastmath.py, against NumPy float64): arctan within 2.5e-7
 and arctan2 within 3e-7 absolute everywhere (XLA's own arctan2: 2.5e-7, about
-one float32 step at pi), sin and cos within 5e-7 absolute for
+one float32 step at pi), arccos within 3e-7 on [-1, 1], sin and cos within 5e-7 absolute for
 |x| <= 1000 rad, tan within 1e-6 relative for |x| <= 1.4 (steering angles are
 below 0.6). The classical Cephes single-precision reductions and polynomials.
 """
@@ -70,6 +71,15 @@ def arctan2(y: Any, x: Any) -> Any:
     return jnp.copysign(a, y)
 
 
+@jax.jit
+def arccos(x: Any) -> Any:
+    """arccos on [-1, 1] as arctan2(sqrt((1 - x)(1 + x)), x): (1 - x) is exact near 1, so
+    no precision is lost where the slope is steep. Outside [-1, 1] it returns 0 or pi,
+    not NaN: callers clip."""
+    x = jnp.asarray(x)
+    return arctan2(jnp.sqrt(jnp.maximum((1.0 - x) * (1.0 + x), 0.0)), x)
+
+
 def _reduce(x: Any) -> tuple[Any, Any]:
     """x = k pi/2 + r, |r| <= pi/4; returns (r, k mod 4)."""
     k = jnp.round(x * np.float32(2.0 / np.pi))
@@ -110,10 +120,11 @@ def tan(x: Any) -> Any:
 
 
 class _FastNumpy:
-    """`jax.numpy` with the five functions above in place of XLA's scalar ones."""
+    """`jax.numpy` with the six functions above in place of XLA's scalar ones."""
 
     arctan = staticmethod(arctan)
     arctan2 = staticmethod(arctan2)
+    arccos = staticmethod(arccos)
     sin = staticmethod(sin)
     cos = staticmethod(cos)
     tan = staticmethod(tan)
