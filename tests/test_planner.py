@@ -150,6 +150,54 @@ def test_a_middle_array_and_a_margin_see_a_corner_at_the_vehicles_side():
     assert surface(clear, 3, 0.0) == 0.0 and surface(clear, 3, 0.2) > 0.0
 
 
+@pytest.mark.parametrize("arrays", [7, 9])
+def test_every_post_the_plants_footprint_meets_is_priced(rng, arrays):
+    """The plant counts a collision wherever a point of its footprint (a 0.1 m grid over the
+    whole rectangle) lies on an obstacle cell. The planner prices footprint points only,
+    each reading its cell and four neighbours; arrays no more than 0.67 m apart (7; 9
+    spaces them as the 5 points across the width) leave no obstacle unpriced that the
+    plant's footprint meets: round posts of radius 0.3-1.0 m anywhere round a standing
+    vehicle (one pose, the true map, no variance). With the default three arrays, 2 m
+    apart, one such post in five costs nothing, and with five one in 170
+    (docs/analysis.md "Posts between the footprint's points")."""
+    from dataclasses import replace
+
+    from common.scenarios import build_scenario
+    from services.planner.costs import query_cells, surface_expectation
+    from services.plant import core as plant
+    scn = build_scenario("open-field", 0)
+    pp = replace(plant.PlantParams.from_config(CFG, scn), obstacle_mask=None)
+    cost = PlannerParams.from_config(CFG.replace(**{"planner.footprint_arrays": arrays})).cost
+    n, res = scn.heightmap.shape[0], scn.resolution
+    centres = np.asarray(scn.origin)[:, None, None] + (np.mgrid[0:n, 0:n][::-1] + 0.5) * res
+    m = flat_map(n)
+    m = MapView(m.mean, m.variance, jnp.asarray(scn.origin, jnp.float32), res)
+
+    @jax.jit
+    def priced(mean, pose):
+        view = MapView(mean, m.variance, m.origin, res)
+        rows, cols, outside = query_cells(cost, view, pose[None])
+        return surface_expectation(cost, view, rows, cols, outside,
+                                   jnp.zeros((1, rows.shape[1]), jnp.float32),
+                                   jnp.float32(0.0)).sum()
+
+    met = 0
+    for _ in range(300):
+        x = np.zeros(6)
+        x[S.X], x[S.Y], x[S.PSI] = n * res / 2, n * res / 2, rng.uniform(-np.pi, np.pi)
+        r = rng.uniform(0.3, 1.0)
+        along, across = rng.uniform(-2.0 - r, 2.0 + r), rng.uniform(-1.0 - r, 1.0 + r)
+        c, s = math.cos(x[S.PSI]), math.sin(x[S.PSI])
+        cx, cy = x[S.X] + c * along - s * across, x[S.Y] + s * along + c * across
+        post = (centres[0] - cx) ** 2 + (centres[1] - cy) ** 2 <= r * r
+        if not plant.collides(replace(pp, obstacle_mask=post), x):
+            continue
+        met += 1
+        cost = float(priced(jnp.asarray(post * 2.0, jnp.float32), jnp.asarray(x, jnp.float32)))
+        assert cost > 0.0, (r, along, across, x[S.PSI])
+    assert met > 200
+
+
 def test_absorbing_crash_against_a_loop(rng):
     """From the first step with >= 0.5 expected indicators on a well-known cell on,
     every step costs 5 P; fog (variance above crash_variance) never crashes; 0 = off."""
