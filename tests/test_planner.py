@@ -159,7 +159,6 @@ def test_every_post_the_plants_footprint_meets_is_priced(rng):
     map, no variance). With the default three arrays, 2 m apart, one such post in five
     costs nothing; with five one in 170, with seven one in 1000 of radius 0.3-0.5 m
     (docs/analysis.md "Posts between the footprint's points")."""
-    arrays = 9
     from dataclasses import replace
 
     from common.scenarios import build_scenario
@@ -167,7 +166,7 @@ def test_every_post_the_plants_footprint_meets_is_priced(rng):
     from services.plant import core as plant
     scn = build_scenario("open-field", 0)
     pp = replace(plant.PlantParams.from_config(CFG, scn), obstacle_mask=None)
-    cost = PlannerParams.from_config(CFG.replace(**{"planner.footprint_arrays": arrays})).cost
+    cost = PlannerParams.from_config(CFG.replace(**{"planner.footprint_arrays": 9})).cost
     n, res = scn.heightmap.shape[0], scn.resolution
     centres = np.asarray(scn.origin)[:, None, None] + (np.mgrid[0:n, 0:n][::-1] + 0.5) * res
     m = flat_map(n)
@@ -193,8 +192,8 @@ def test_every_post_the_plants_footprint_meets_is_priced(rng):
         if not plant.collides(replace(pp, obstacle_mask=post), x):
             continue
         met += 1
-        cost = float(priced(jnp.asarray(post * 2.0, jnp.float32), jnp.asarray(x, jnp.float32)))
-        assert cost > 0.0, (r, along, across, x[S.PSI])
+        paid = float(priced(jnp.asarray(post * 2.0, jnp.float32), jnp.asarray(x, jnp.float32)))
+        assert paid > 0.0, (r, along, across, x[S.PSI])
     assert met > 200
 
 
