@@ -162,7 +162,7 @@ def test_every_post_the_plants_footprint_meets_is_priced(rng):
     from dataclasses import replace
 
     from common.scenarios import build_scenario
-    from services.planner.costs import query_cells, surface_expectation
+    from services.planner.costs import footprint_cells, surface_expectation
     from services.plant import core as plant
     scn = build_scenario("open-field", 0)
     pp = replace(plant.PlantParams.from_config(CFG, scn), obstacle_mask=None)
@@ -175,9 +175,9 @@ def test_every_post_the_plants_footprint_meets_is_priced(rng):
     @jax.jit
     def priced(mean, pose):
         view = MapView(mean, m.variance, m.origin, res)
-        rows, cols, outside = query_cells(cost, view, pose[None])
-        return surface_expectation(cost, view, rows, cols, outside,
-                                   jnp.zeros((1, rows.shape[1]), jnp.float32),
+        row, col, outside = footprint_cells(cost, view, pose[None])
+        return surface_expectation(cost, view, row, col, outside,
+                                   jnp.zeros((1, 5 * row.shape[1]), jnp.float32),
                                    jnp.float32(0.0)).sum()
 
     met = 0
@@ -325,8 +325,8 @@ def test_monte_carlo_surface_cost_agrees_with_the_closed_form(rng):
     n, steps, p = 60, PP.horizon + 1, P_POINTS
     mean = jnp.asarray(rng.normal(size=(n, n)) * 0.4, jnp.float32)
     m = MapView(mean, jnp.zeros((n, n)), jnp.zeros(2), 0.2)
-    rows = jnp.asarray(rng.integers(1, n - 1, (steps, 5 * p)), jnp.int32)
-    cols = jnp.asarray(rng.integers(1, n - 1, (steps, 5 * p)), jnp.int32)
+    rows = jnp.asarray(rng.integers(1, n - 1, (steps, p)), jnp.int32)
+    cols = jnp.asarray(rng.integers(1, n - 1, (steps, p)), jnp.int32)
     outside = jnp.zeros((steps, p), bool)
     qvar = jnp.asarray(rng.uniform(0, 0.4, (steps, 5 * p)) ** 2, jnp.float32)
     cf = np.asarray(surface_expectation(c_cf, m, rows, cols, outside, qvar, 0.0))
@@ -348,7 +348,6 @@ def test_native_expected_surface_matches_the_closed_form(rng):
         CostParams,
         footprint_cells,
         ground_now,
-        query_cells,
         surface_expectation,
     )
     c = CostParams.from_config(CFG)
@@ -367,7 +366,7 @@ def test_native_expected_surface_matches_the_closed_form(rng):
 
     def reference(var):
         def one(st, v, g):
-            return surface_expectation(c, m, *query_cells(c, m, st), v, g)
+            return surface_expectation(c, m, *footprint_cells(c, m, st), v, g)
         return np.asarray(jax.vmap(one)(states, var, h0))
 
     def kernel(var, threads):

@@ -146,22 +146,10 @@ def footprint_cells(c: CostParams, m: MapView, states: Any) -> tuple[Any, Any, A
     return jnp.clip(row, 1, h - 2), jnp.clip(col, 1, w - 2), outside
 
 
-def query_cells(c: CostParams, m: MapView, states: Any) -> tuple[Any, Any, Any]:
-    """Cells the surface cost reads along a rollout, step-major.
-
-    Returns rows, cols (N+1, 5 P) int (the five cells of every footprint point,
-    `OFFSETS`, offset-major) and `outside` (N+1, P), footprint points off the map.
-    """
-    row, col, outside = footprint_cells(c, m, states)
-    rows = jnp.concatenate([row + dr for dr, _ in OFFSETS], axis=1)
-    cols = jnp.concatenate([col + dc for _, dc in OFFSETS], axis=1)
-    return rows, cols, outside
-
-
 def five_cells(grid: Any, row: Any, col: Any) -> Any:
-    """grid at the five cells of every footprint point (`OFFSETS`), (..., 5 P) offset-major
-    as `query_cells` orders them, from the points' own cells row, col (..., P), kept one cell
-    inside the grid. One gather of five neighbours stacked per cell, not five gathers:
+    """grid at the five cells of every footprint point (`OFFSETS`), (..., 5 P) offset-major,
+    from the points' own cells row, col (..., P) (`footprint_cells`), kept one cell inside
+    the grid. One gather of five neighbours stacked per cell, not five gathers:
     XLA:CPU pays per gathered index, so this is the same values at about a fifth of the
     cost."""
     h, w = grid.shape
@@ -188,20 +176,20 @@ def indicator_quantities(c: CostParams, m: MapView, h: Any, n_pts: int, h0: Any)
             jnp.where(first, 0.0, h_c - jnp.roll(h_c, 1, axis=-1)), h_c - h0]
 
 
-def surface_expectation(c: CostParams, m: MapView, rows: Any, cols: Any, outside: Any,
+def surface_expectation(c: CostParams, m: MapView, row: Any, col: Any, outside: Any,
                         query_var: Any, h0: Any, key: Any = None) -> Any:
     """Expected number of tripped indicators at each footprint point, (N+1, P).
 
-    `rows, cols, outside` from `query_cells`; `query_var` (N+1, 5 P) the variance
-    the rollout meets at those cells (zero for the deterministic and prescient
-    controllers, visibility-decayed for VA-MPPI); `h0` the ground under the
-    vehicle now. Cells are independent Gaussians. `closed_form`: each quantity is
-    a difference of independent Gaussians, P(|X| > t) from the normal CDF.
-    `monte_carlo` (the paper's N_theta samples, needs `key`): every looked-up
-    cell drawn independently, the indicators averaged.
+    `row, col, outside` (N+1, P) from `footprint_cells`; `query_var` (N+1, 5 P) the
+    variance the rollout meets at each point's five cells (`five_cells`; zero for the
+    deterministic and prescient controllers, visibility-decayed for VA-MPPI); `h0` the
+    ground under the vehicle now. Cells are independent Gaussians. `closed_form`: each
+    quantity is a difference of independent Gaussians, P(|X| > t) from the normal CDF.
+    `monte_carlo` (the paper's N_theta samples, needs `key`): every looked-up cell drawn
+    independently, the indicators averaged.
     """
     n_pts = outside.shape[1]
-    mu = five_cells(m.mean, rows[..., :n_pts], cols[..., :n_pts])
+    mu = five_cells(m.mean, row, col)
     thresholds = (c.grad_threshold, c.grad_threshold, c.step_threshold, c.step_threshold,
                   c.height_threshold_m)
     if c.surface_estimator == "monte_carlo":
@@ -346,7 +334,7 @@ def ground_now(m: MapView, states: Any) -> Any:
 def rollout_cost(c: CostParams, states: Any, xdots: Any, goal: Any, m: MapView,
                  query_var: Any, key: Any = None, expected: Any = None) -> Any:
     """Cost terms (6,) of one rollout: states (N+1, 6), dx/dt (N, 6), goal (3,),
-    `query_var` (T, 5 P) the variance met at the cells of `query_cells` on the T =
+    `query_var` (T, 5 P) the variance met at the cells of `five_cells` on the T =
     N+1+B `priced_poses` (None when
     `expected` is given and `crash_variance` is 0: nothing reads it); `key` for the
     Monte-Carlo surface estimate; `expected` (T, P) the surface expectation where the
@@ -363,8 +351,8 @@ def rollout_cost(c: CostParams, states: Any, xdots: Any, goal: Any, m: MapView,
 
     priced = priced_poses(c, states)
     if expected is None:
-        rows, cols, outside = query_cells(c, m, priced)
-        expected = surface_expectation(c, m, rows, cols, outside, query_var,
+        row, col, outside = footprint_cells(c, m, priced)
+        expected = surface_expectation(c, m, row, col, outside, query_var,
                                        ground_now(m, states), key)
     per_step = absorbing_crash(c, expected, query_var)
     if c.surface_distance_m > 0.0:

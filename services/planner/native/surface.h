@@ -82,7 +82,7 @@ inline void trajectory(const Params& p, Scratch& s, const int32_t* rows, const i
   float *hc = s.hc.data(), *vc = s.vc.data(), *gx = s.gx.data(), *vx = s.vx.data(),
         *gy = s.gy.data(), *vy = s.vy.data();
   const float *after_step = s.after_first_step.data(), *after_point = s.after_first_point.data();
-  for (int64_t i = 0; i < p.t_len; ++i) {   // the five cells (costs.query_cells)
+  for (int64_t i = 0; i < p.t_len; ++i) {   // the five cells (costs.five_cells)
     const float* v = variance + i * n_pts * kQueries;   // query-major
 #pragma omp simd
     for (int64_t q = 0; q < n_pts; ++q) {
