@@ -156,8 +156,8 @@ def test_every_post_the_plants_footprint_meets_is_priced(rng):
     each reading its cell and four neighbours; nine arrays, 0.5 m apart as the 5 points
     across the width are, leave no obstacle unpriced that the plant's footprint meets:
     round posts of radius 0.3-1.0 m anywhere round a standing vehicle (one pose, the true
-    map, no variance). With the default three arrays, 2 m apart, one such post in five
-    costs nothing; with five one in 170, with seven one in 1000 of radius 0.3-0.5 m
+    map, no variance). With three arrays, 2 m apart (the default before nine), one such
+    post in five costs nothing; with five one in 170, with seven one in 1000 of radius 0.3-0.5 m
     (docs/analysis.md "Posts between the footprint's points")."""
     from dataclasses import replace
 

@@ -211,14 +211,17 @@ def reachable(scn, clearance: float = CLEARANCE_M) -> float:
 def probe_config(cfg: Config, scenario: str) -> Config:
     """The run that finds the fast line, and the one that checks a world: the prescient
     controller, seed 0, with the paper's plain sampler (no braking, swerve or advanced
-    samples) and straight-line goal distance, so that a world stays what it was when those
-    additions' defaults change."""
+    samples), straight-line goal distance and instants' time cost, three footprint arrays
+    and the pixels' own hits, so that a world stays what it was when those additions'
+    defaults change."""
     return cfg.replace(**{"episode.scenario": scenario, "planner.controller": "prescient",
                           "planner.samples": PROBE_SAMPLES, "episode.seed": 0,
                           "episode.layout": 0, "episode.scenario_seed": 0,
                           "planner.brake_samples": 0, "planner.swerve_samples": 0,
                           "planner.advance_samples": 0, "planner.effective_update": False,
                           "planner.goal_distance": "straight",
+                          "planner.time_cost": "instants", "planner.footprint_arrays": 3,
+                          "mapper.fill_between_pixels": False,
                           "planner.stop_poses": 0})
 
 
