@@ -12,6 +12,7 @@
     vamppi config ...        print the effective configuration as JSON
     vamppi reveal DIR        when each hidden obstacle was first seen, and could it stop
     vamppi collisions DIR... what each collision was on, and how long the map had shown it
+    vamppi timeouts DIR...   how each run that timed out ended: standing (since when) or driving
 
 Every command takes `--config FILE` and `--set section.key=value` (repeatable). A bus
 command (health, record, replay, view, swap) given no `--connect` connects to the router
@@ -21,8 +22,8 @@ Where each command's code is: up (deploy/launch/up.py), swap (launch/swap.py), c
 (launch/certs.py), service, router, health (here, around common.bus); record and recover
 (recording/record.py), replay, timing, export-foxglove, view (recording/replay.py,
 timing.py, foxglove.py, view.py); run (sim/runner.py), experiment (sim/experiment.py, its summary
-analysis/summary.py), scenario generate and set (sim/generate.py); reveal, collisions, plans
-(analysis/); bench WHAT (bench/main.py).
+analysis/summary.py), scenario generate and set (sim/generate.py); reveal, collisions,
+timeouts, plans (analysis/); bench WHAT (bench/main.py).
 """
 
 from __future__ import annotations
@@ -556,6 +557,23 @@ def cmd_collisions(args: argparse.Namespace, cfg: Config) -> int:
     return 0
 
 
+def cmd_timeouts(args: argparse.Namespace, cfg: Config) -> int:
+    """How each run of one or more experiments that timed out or never stopped at the goal
+    ended (deploy/analysis/timeouts.py): one table over all of them."""
+    from deploy.analysis.timeouts import counts, endings, table
+    rows = []
+    for given in args.runs:
+        _, run_cfg, runs = experiment_runs(args, given, cfg)
+        try:
+            rows += endings(run_cfg, runs)
+        except ValueError as exc:
+            print(f"vamppi timeouts: {given}: {exc}", file=sys.stderr)
+            return 2
+    print(json.dumps(rows, indent=1) if args.json else table(rows))
+    print(json.dumps(counts(rows)), file=sys.stderr)
+    return 0
+
+
 def cmd_view(args: argparse.Namespace, cfg: Config) -> int:
     """Serve the bus live to Foxglove until Ctrl-C / SIGTERM / --duration / the parent's
     death (deploy/recording/view.py)."""
@@ -813,6 +831,15 @@ def _analysis_commands(sub: Any) -> None:
     p.add_argument("--json", action="store_true", help="JSON rows instead of a table")
     add_config_args(p, shorthands=False)
     p.set_defaults(func=cmd_collisions)
+
+    p = sub.add_parser("timeouts", help="how each run that timed out ended: standing (since "
+                                        "when) or still driving, and how near the goal")
+    p.add_argument("runs", nargs="+",
+                   help="experiments' runs.jsonl (or their directories): one table over all")
+    p.add_argument("--controller", dest="only", help="only these controllers (a,b)")
+    p.add_argument("--json", action="store_true", help="JSON rows instead of a table")
+    add_config_args(p, shorthands=False)
+    p.set_defaults(func=cmd_timeouts)
 
 
 def _tool_commands(sub: Any) -> None:
