@@ -48,13 +48,13 @@ def endings(cfg: Config, runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
     the goal region: its keys and `ending`, the goal from its scenario; a record without a
     path says so (`how`: "no path")."""
     from common.scenarios import build_scenario
-    from deploy.sim.experiment import run_layout
+    from deploy.sim.experiment import KEY_FIELDS, run_layout
     goals: dict[tuple[str, int, int], tuple[float, float]] = {}
     rows = []
     for r in runs:
         if r["outcome"] not in FAILED:
             continue
-        row = {k: r[k] for k in ("scenario", "controller", "samples", "seed", "outcome")}
+        row = {k: r[k] for k in (*KEY_FIELDS, "outcome")}
         row["world"] = r.get("world", r["scenario"])
         if not r.get("path"):
             rows.append({**row, "how": "no path"})
