@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from common.config import load_config
-from deploy.analysis.plans import plans, table, variants
+from deploy.analysis.plans import plans, steady_plans, table, variants
 from services.planner.costs import TERMS
 
 
@@ -24,6 +24,42 @@ def test_variants_are_the_plan_sooner_its_last_control_held_then_coasting_or_bra
         np.testing.assert_array_equal(v[:, 0], three[:, 0])          # the steering stays
         np.testing.assert_array_equal(v[:10, 1], three[:10, 1])
         assert (v[10:, 1] == force).all()
+
+
+def test_steady_plans_hold_each_steering_with_each_force_or_brake_first():
+    lo, hi = np.array([-0.6, -6000.0]), np.array([0.6, 5000.0])
+    named = dict(steady_plans(40, lo, hi, steers=(-1.0, 0.5), forces=("brake", 0.0, 0.5),
+                              brake_steps=(10,)))
+    assert list(named) == ["steer -1.00, braking", "steer +0.50, braking",
+                           "steer -1.00, coasting", "steer +0.50, coasting",
+                           "steer -1.00, force 2500 N", "steer +0.50, force 2500 N",
+                           "brake 10 steps, then steer -1.00", "brake 10 steps, then steer +0.50"]
+    u = named["steer +0.50, force 2500 N"]
+    assert u.shape == (40, 2) and (u[:, 0] == np.float32(0.3)).all() and (u[:, 1] == 2500).all()
+    assert (named["steer -1.00, braking"][:, 1] == -6000).all()
+    b = named["brake 10 steps, then steer -1.00"]
+    assert (b[:10] == [0.0, -6000.0]).all() and (b[10:] == [np.float32(-0.6), 0.0]).all()
+
+
+def test_steady_plans_and_a_second_configuration_price_the_same_state():
+    """With `steady` the hand-made plans join the rows; with a second configuration that
+    doubles w_time every plan's time term doubles and nothing else moves: the same
+    rollouts, priced again on the same map."""
+    cfg = load_config(overrides=['episode.scenario="alleyway"', 'planner.controller="va"',
+                                 "planner.samples=64"])
+    alt = load_config(overrides=[f"planner.w_time={2 * cfg.planner.w_time}"], base=cfg)
+    rows = plans(cfg, 1.0, shifts=(2,), tails=(20,), steady=True, alt=alt)
+    names = [r["plan"] for r in rows]
+    assert "steer +1.00, braking" in names and "brake 15 steps, then steer -0.50" in names
+    for r in rows[1:]:
+        np.testing.assert_allclose(r["alt"]["time"], 2.0 * r["time"], rtol=1e-6)
+        np.testing.assert_allclose([r["alt"][t] for t in TERMS if t != "time"],
+                                   [r[t] for t in TERMS if t != "time"], rtol=1e-6, atol=1e-6)
+        assert 0.0 <= r["to_goal_nearest_m"] <= r["to_goal_end_m"]
+    by = {r["plan"]: r for r in rows}
+    assert by["steer +0.00, braking"]["moved_m"] < by["steer +0.00, force 2500 N"]["moved_m"]
+    text = table(rows, limit=3)
+    assert "total, second config" in text and len(text.splitlines()) == 2 + 2 + 2 + 3
 
 
 @pytest.mark.parametrize("controller", ["va", "prescient"])

@@ -255,11 +255,12 @@ def cmd_plans(args: argparse.Namespace, cfg: Config) -> int:
     carried out sooner (deploy/analysis/plans.py)."""
     from deploy.analysis.plans import plans, table
     try:
-        rows = plans(cfg, args.at)
-    except ValueError as exc:
+        alt = load_config(overrides=args.price_with, base=cfg) if args.price_with else None
+        rows = plans(cfg, args.at, steady=args.steady, alt=alt)
+    except (ValueError, ConfigError) as exc:
         print(f"vamppi plans: {exc}", file=sys.stderr)
         return 2
-    print(json.dumps(rows, indent=1) if args.json else table(rows))
+    print(json.dumps(rows, indent=1) if args.json else table(rows, args.top))
     return 0
 
 
@@ -760,6 +761,13 @@ def _simulation_commands(sub: Any) -> None:
                                      "beside the same plan carried out sooner")
     p.add_argument("--at", type=float, required=True, metavar="SECONDS",
                    help="the instant (simulated time) whose plan is priced")
+    p.add_argument("--steady", action="store_true",
+                   help="also price plans made by hand: each steering angle held with each "
+                        "force, and braking first, then a steering angle held")
+    p.add_argument("--price-with", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="price every plan again under the configuration with this override "
+                        "(repeatable): same state, same map")
+    p.add_argument("--top", type=int, metavar="N", help="the table's N cheapest plans only")
     p.add_argument("--json", action="store_true")
     add_config_args(p)
     p.set_defaults(func=cmd_plans)
