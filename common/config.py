@@ -140,6 +140,7 @@ class PlannerConfig:
     route_unseen_turn_factor: float = _rng(1.0)
     route_cap_m: float = _rng(0.0)
     route_sweeps: int = _rng(0, 10_000)
+    turn_radius_speed: bool = _rng()
     stop_poses: int = _rng(0, 64)
     time_cost: str = _rng(choices=("instants", "running"))
     w_time: float = _rng(0.0)

@@ -84,3 +84,40 @@ def test_a_goal_dead_ahead_is_its_straight_line_distance_others_a_turn_away(xp_n
     # within 2 m of it, much shorter than the way to the point itself
     assert float(goal_path_length(0.0, 10.0, 0.0, r, 2.0)) < float(
         dubins_to_point(0.0, 10.0, 0.0, r)) - 3.0
+
+
+def test_goal_distance_at_speed_is_the_path_of_the_turn_the_tyres_allow_on_fresh_poses():
+    """`planner.turn_radius_speed`: against a float64 construction at the radius the tyres
+    allow, max(R, V^2 / D g), into a goal circle as much wider; below that speed the same
+    number as the tightest turn's, and a goal beside the vehicle farther the faster."""
+    import jax.numpy as jnp
+
+    from common.config import load_config
+    from services.planner.costs import CostParams, goal_distance
+    seed = int(np.random.SeedSequence().entropy % 2**32)
+    rng = np.random.default_rng(seed)
+    on, off = (CostParams.from_config(load_config(overrides={
+        "planner.goal_distance": "turning", "planner.turn_radius_speed": f}))
+        for f in (True, False))
+    n = 200
+    states = np.zeros((n, 6))
+    states[:, 0] = rng.uniform(0.0, 12.0, n)                      # V
+    states[:, 3:5] = rng.uniform(-25.0, 25.0, (n, 2))             # X, Y
+    states[:, 5] = rng.uniform(-np.pi, np.pi, n)                  # psi
+    goal = np.array([*rng.uniform(-10.0, 10.0, 2), 0.0])
+    got = np.asarray(goal_distance(on, jnp.asarray(states, jnp.float32),
+                                   jnp.asarray(goal, jnp.float32), jnp))
+    r, reach, a_lat = on.turn_radius, on.goal_radius_m, on.stop.lateral_accel_mps2
+    scale = np.maximum(states[:, 0] ** 2 / (a_lat * r), 1.0)
+    ref = np.array([float(goal_path_length(goal[0] - x, goal[1] - y, psi, r * k, reach * k))
+                    for x, y, psi, k in zip(*states[:, 3:6].T, scale, strict=True)])
+    np.testing.assert_allclose(got, ref, rtol=3e-6, err_msg=str(seed))   # 1.2e-6 seen
+    slow = states[:, 0] ** 2 < a_lat * r
+    plain = np.asarray(goal_distance(off, jnp.asarray(states, jnp.float32),
+                                     jnp.asarray(goal, jnp.float32), jnp))
+    np.testing.assert_array_equal(got[slow], plain[slow])
+    beside = np.zeros((4, 6), np.float32)
+    beside[:, 0] = [4.0, 6.0, 8.0, 10.0]
+    d = np.asarray(goal_distance(on, jnp.asarray(beside), jnp.array([0.0, 15.0, 0.0]), jnp))
+    assert (np.diff(d) > 0).all() and d[0] == pytest.approx(float(
+        goal_path_length(0.0, 15.0, 0.0, r, reach)), rel=1e-6)

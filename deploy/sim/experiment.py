@@ -62,12 +62,18 @@ class ExperimentError(ValueError):
     that cannot be built."""
 
 
+# parameters added after tables were made, at the value that leaves a run as it was: left
+# out of the digest there, so those tables' digests and records stay valid
+DIGEST_NEUTRAL = {("planner", "turn_radius_speed"): False}
+
+
 def config_digest(cfg: Config) -> str:
     """Digest of every parameter that shapes a run except the per-run keys (scenario,
     controller, samples, seed); the bus, the clock and the bus protocol's parameters
     (supervision, re-offers, authority, perception timeout) do not matter in-process. The
     runs of one output directory must share it. The scenario's layout is not in it (it
-    came after the digest): each record carries its own (`run_layout`)."""
+    came after the digest): each record carries its own (`run_layout`); nor is a parameter
+    of `DIGEST_NEUTRAL` at its neutral value."""
     d = cfg.to_dict()
     d.pop("bus", None)
     d.pop("supervision", None)
@@ -76,6 +82,9 @@ def config_digest(cfg: Config) -> str:
                          ("episode", "clock"), ("episode", "layout"), ("episode", "vehicle"),
                          ("planner", "controller"), ("planner", "samples")):
         d[section].pop(key, None)
+    for (section, key), neutral in DIGEST_NEUTRAL.items():
+        if d[section].get(key) == neutral:
+            d[section].pop(key)
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 

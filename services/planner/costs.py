@@ -66,6 +66,7 @@ class CostParams:
     surface_distance_m: float      # per-step surface weight V dt / this; 0 = off (plain sum)
     turn_radius: float             # derived: the goal distance along a path this tight; 0 =
                                    # straight line (goal_distance)
+    turn_radius_speed: bool        # ... or no tighter than V^2 / D g at the pose's speed V
     goal_radius_m: float           # [episode]: ... into the goal circle of this radius
     stop_poses: int                # the surface cost also prices this many poses of the
     stop: Reaction                 # derived: ... way to a stop from the horizon's end; 0 = off
@@ -266,13 +267,24 @@ def goal_distance(c: CostParams, states: Any, goal: Any, xp: Any = jnp,
     """d of the time, distance and stop terms at poses `states` (..., 6): the straight
     line to the goal (the paper's), or with `turn_radius` the length of the shortest
     forward path into the goal circle at that radius (`geometry.goal_path_length`): a
-    goal beside or behind the vehicle is as far as the turn it takes to get there; with
+    goal beside or behind the vehicle is as far as the turn it takes to get there (with
+    `turn_radius_speed` the turn the tyres allow at the pose's speed, the radius and the
+    goal circle scaled by k = max(1, V^2 / (D g turn_radius)): k times the path at
+    `turn_radius` to a goal k times nearer); with
     `route` and a map `m` with its detour, that plus the detour the map asks for
     (services/planner/route.py)."""
     dx, dy = goal[0] - states[..., S.X], goal[1] - states[..., S.Y]
     if c.turn_radius <= 0.0:
         return xp.sqrt(dx * dx + dy * dy)
-    d = goal_path_length(dx, dy, states[..., S.PSI], c.turn_radius, c.goal_radius_m, xp)
+    if c.turn_radius_speed:
+        # the tightest turn's path scaled by k: a path of radius k R (its goal circle k times
+        # as wide too), the same length for a goal dead ahead
+        v = states[..., S.V]
+        k = xp.maximum(v * v / (c.stop.lateral_accel_mps2 * c.turn_radius), 1.0)
+        d = k * goal_path_length(dx / k, dy / k, states[..., S.PSI], c.turn_radius,
+                                 c.goal_radius_m, xp)
+    else:
+        d = goal_path_length(dx, dy, states[..., S.PSI], c.turn_radius, c.goal_radius_m, xp)
     if c.route is None or m is None or m.detour is None:
         return d
     return d + route.lookup(c.route, m.detour, m.origin, states)
