@@ -144,15 +144,11 @@ def first_sightings(cfg: Config, scn: Scenario, poses, which: list[int],
 def reveal_runs(cfg: Config, runs: list[dict], obstacles: str = "hidden",
                 min_returns: int = MIN_RETURNS) -> list[dict]:
     """One row per run and obstacle; `obstacles` is "hidden" or "all"."""
-    from common.scenarios import build_scenario
-    from deploy.sim.experiment import run_layout
+    from deploy.sim.experiment import run_scenario
     cache: dict[tuple[str, int, int], Scenario] = {}
     rows = []
     for r in runs:
-        key = (r["scenario"], int(r.get("scenario_seed", cfg.episode.scenario_seed)), run_layout(r))
-        if key not in cache:
-            cache[key] = build_scenario(key[0], key[1], cfg.mapper.resolution_m, layout=key[2])
-        scn = cache[key]
+        scn = run_scenario(cfg, r, cache)
         which = [i for i, o in enumerate(scn.obstacles) if obstacles == "all" or o.hidden]
         for s in first_sightings(cfg, scn, poses_of_path(np.asarray(r["path"], float)), which,
                                  min_returns):

@@ -47,9 +47,8 @@ def endings(cfg: Config, runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """One row per run of `runs` (experiment records) that timed out or never stopped in
     the goal region: its keys and `ending`, the goal from its scenario; a record without a
     path says so (`how`: "no path")."""
-    from common.scenarios import build_scenario
-    from deploy.sim.experiment import KEY_FIELDS, run_layout
-    goals: dict[tuple[str, int, int], tuple[float, float]] = {}
+    from deploy.sim.experiment import KEY_FIELDS, run_scenario
+    scenarios: dict[tuple[str, int, int], Any] = {}
     rows = []
     for r in runs:
         if r["outcome"] not in FAILED:
@@ -59,12 +58,8 @@ def endings(cfg: Config, runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
         if not r.get("path"):
             rows.append({**row, "how": "no path"})
             continue
-        key = (r["scenario"], int(r.get("scenario_seed", cfg.episode.scenario_seed)),
-               run_layout(r))
-        if key not in goals:
-            g = build_scenario(key[0], key[1], cfg.mapper.resolution_m, layout=key[2]).goal
-            goals[key] = (g.x, g.y)
-        rows.append({**row, **ending(r["path"], goals[key])})
+        goal = run_scenario(cfg, r, scenarios).goal
+        rows.append({**row, **ending(r["path"], (goal.x, goal.y))})
     return rows
 
 

@@ -119,6 +119,16 @@ def run_layout(r: dict[str, Any]) -> int:
     return int(r.get("layout", 1))
 
 
+def run_scenario(cfg: Config, r: dict[str, Any],
+                 cache: dict[tuple[str, int, int], Any]) -> Any:
+    """The scenario a record ran in (its name, scenario seed and `run_layout`), built once
+    per key into `cache`."""
+    key = (r["scenario"], int(r.get("scenario_seed", cfg.episode.scenario_seed)), run_layout(r))
+    if key not in cache:
+        cache[key] = build_scenario(key[0], key[1], cfg.mapper.resolution_m, layout=key[2])
+    return cache[key]
+
+
 def run_record(cfg: Config, result) -> dict[str, Any]:
     """One run's record (format RECORD_FORMAT): the summary, its 10 Hz path (t, X, Y, V,
     psi) and solve times."""
