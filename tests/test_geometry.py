@@ -111,7 +111,9 @@ def test_goal_distance_at_speed_is_the_path_of_the_turn_the_tyres_allow_on_fresh
     scale = np.maximum(states[:, 0] ** 2 / (a_lat * r), 1.0)
     ref = np.array([float(goal_path_length(goal[0] - x, goal[1] - y, psi, r * k, reach * k))
                     for x, y, psi, k in zip(*states[:, 3:6].T, scale, strict=True)])
-    np.testing.assert_allclose(got, ref, rtol=3e-6, err_msg=str(seed))   # 1.2e-6 seen
+    # float32 through the k-scaled path: 5.3e-6 the largest seen on 30,000 poses
+    # (150 seeds); the tightest turn alone reaches 2.7e-6 on the same poses
+    np.testing.assert_allclose(got, ref, rtol=6e-6, err_msg=str(seed))
     slow = states[:, 0] ** 2 < a_lat * r
     plain = np.asarray(goal_distance(off, jnp.asarray(states, jnp.float32),
                                      jnp.asarray(goal, jnp.float32), jnp))
