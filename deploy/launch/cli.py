@@ -9,6 +9,7 @@
     vamppi plans --at T ...  the plan at T s of such an episode against the same plan sooner
     vamppi experiment --scenario alleyway,offroad --controllers va,deterministic,prescient \\
         --samples 400,1000,4000 --runs 100 --seed 0 --out DIR
+    vamppi tables [NAME...] [--run [--stale] --root DIR]   the tables of record: current?
     vamppi config ...        print the effective configuration as JSON
     vamppi reveal DIR        when each hidden obstacle was first seen, and could it stop
     vamppi collisions DIR... what each collision was on, and how long the map had shown it
@@ -21,9 +22,10 @@ of the `vamppi up` running on this machine (deploy/launch/running.py).
 Where each command's code is: up (deploy/launch/up.py), swap (launch/swap.py), certs
 (launch/certs.py), service, router, health (here, around common.bus); record and recover
 (recording/record.py), replay, timing, export-foxglove, view (recording/replay.py,
-timing.py, foxglove.py, view.py); run (sim/runner.py), experiment (sim/experiment.py, its summary
-analysis/summary.py), scenario generate and set (sim/generate.py); reveal, collisions,
-timeouts, plans (analysis/); bench WHAT (bench/main.py).
+timing.py, foxglove.py, view.py); run (sim/runner.py), experiment (sim/experiment.py, its
+summary analysis/summary.py), tables (sim/tables.py), scenario generate and set
+(sim/generate.py); reveal, collisions, timeouts, plans (analysis/); bench WHAT
+(bench/main.py).
 """
 
 from __future__ import annotations
@@ -401,6 +403,57 @@ def cmd_experiment(args: argparse.Namespace, cfg: Config) -> int:
         if row.get("controller") in asked[0] and row.get("samples") in asked[1]:
             print(json.dumps(row), flush=True)
     return 0
+
+
+def cmd_tables(args: argparse.Namespace, cfg: Config) -> int:
+    """The tables of record (deploy/sim/tables.py): their state under --root, or with --run
+    the named (or, with --stale, the out-of-date) ones made into it, one after another."""
+    from deploy.analysis.summary import write_summary
+    from deploy.sim.cluster import ClusterError, on_cluster
+    from deploy.sim.experiment import ExperimentError, expand_scenarios, experiment, read_runs
+    from deploy.sim.tables import RESULTS_DIR, select, status_markdown, table_state
+    if not Path("common/scenarios").is_dir():
+        print("vamppi tables: run it from the repository root (the tables name their "
+              "scenario files from there)", file=sys.stderr)
+        return 2
+    try:
+        tables = select(args.names)
+    except ValueError as exc:
+        print(f"vamppi tables: {exc}", file=sys.stderr)
+        return 2
+    root = Path(args.root)
+
+    def states(where: Path) -> list:
+        return [table_state(t, read_runs(where / t.name / "runs.jsonl")) for t in tables]
+    if args.stale:
+        tables = [s.table for s in states(RESULTS_DIR) if s.state != "current"]
+    if args.run:
+        _interrupt_on_sigterm()
+        runner = on_cluster(args.cluster, args.jobs) if args.cluster else None
+        for t in tables:
+            t_cfg, out = t.config(), root / t.name
+            print(f"vamppi tables: {t.name} into {out}: {t.command()}", file=sys.stderr)
+            try:
+                runs = experiment(t_cfg, expand_scenarios(list(t.scenarios)),
+                                  list(t.controllers), [t.samples], t.runs, t.seed, out,
+                                  progress=not args.quiet, jobs=args.jobs, runner=runner)
+                write_summary(t_cfg, runs, out, plots=not args.no_plots)
+            except (ExperimentError, ClusterError) as exc:
+                print(f"vamppi tables: {t.name}: {exc}", file=sys.stderr)
+                return 2
+            except KeyboardInterrupt:
+                print(f"vamppi tables: interrupted in {t.name}; the finished runs are kept "
+                      "and the same command resumes", file=sys.stderr)
+                return 130
+    rows = states(root)
+    if args.json:
+        print(json.dumps([{"table": s.table.name, "state": s.state, "runs": s.found,
+                           "want": s.want, "digests": list(s.digests), "digest": s.digest,
+                           "worker_hours": round(s.wall_h, 3), "command": s.table.command()}
+                          for s in rows], indent=1))
+    else:
+        print(status_markdown(rows), end="")
+    return 0 if not args.run or all(s.state == "current" for s in rows) else 1
 
 
 def cmd_config(args: argparse.Namespace, cfg: Config) -> int:
@@ -794,6 +847,27 @@ def _simulation_commands(sub: Any) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_config_args(p, shorthands=False)
     p.set_defaults(func=cmd_experiment)
+
+    p = sub.add_parser("tables", help="the tables of record (docs/results): whether each is "
+                                      "today's program's, and making them again")
+    p.add_argument("names", nargs="*", metavar="NAME",
+                   help="these tables only (default: every one; `vamppi tables` lists them)")
+    p.add_argument("--root", default="docs/results",
+                   help="the directory holding the tables' directories (default docs/results)")
+    p.add_argument("--run", action="store_true",
+                   help="make the tables into --root, resuming what is there; a directory "
+                        "of another configuration is refused: give a new --root")
+    p.add_argument("--stale", action="store_true",
+                   help="only the tables that docs/results does not hold as today's program "
+                        "would make them")
+    p.add_argument("--jobs", type=_positive_int, default=1,
+                   help="worker processes running runs side by side (vamppi experiment)")
+    p.add_argument("--cluster", metavar="ADDRESS",
+                   help="run on the Ray cluster at ADDRESS, or `local` (vamppi experiment)")
+    p.add_argument("--no-plots", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--json", action="store_true", help="JSON rows, each with its command")
+    p.set_defaults(func=cmd_tables)
 
     p = sub.add_parser("scenario", help="a scenario as JSON and its picture; its file; "
                                         "generated worlds")
