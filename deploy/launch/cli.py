@@ -67,6 +67,20 @@ def add_config_args(p: argparse.ArgumentParser, shorthands: bool = True) -> None
     g.add_argument("--vehicle", help="episode.vehicle")
 
 
+def add_runner_args(p: argparse.ArgumentParser) -> None:
+    """How an experiment's runs are run (deploy/sim/experiment.py), and what it shows."""
+    p.add_argument("--jobs", type=_positive_int, default=1,
+                   help="worker processes running runs side by side, each pinned to its "
+                        "share of the CPUs (default 1: in this process); solve times are "
+                        "then measured with the others competing")
+    p.add_argument("--cluster", metavar="ADDRESS",
+                   help="run the runs as tasks on the Ray cluster at ADDRESS (auto, "
+                        "HOST:6379, ray://HOST:10001), or on one started here with --jobs "
+                        "CPUs (local); needs the cluster extra")
+    p.add_argument("--no-plots", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
 def add_bus_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("bus (zenoh)")
     g.add_argument("--mode", choices=("peer", "client", "router"), help="bus.mode")
@@ -835,16 +849,7 @@ def _simulation_commands(sub: Any) -> None:
     p.add_argument("--seed", dest="seed_base", type=int, default=0,
                    help="planner seed of the first run; run i uses seed + i")
     p.add_argument("--out", required=True, help="output directory (resumable)")
-    p.add_argument("--jobs", type=_positive_int, default=1,
-                   help="worker processes running runs side by side, each pinned to its "
-                        "share of the CPUs (default 1: in this process); solve times are "
-                        "then measured with the others competing")
-    p.add_argument("--cluster", metavar="ADDRESS",
-                   help="run the runs as tasks on the Ray cluster at ADDRESS (auto, "
-                        "HOST:6379, ray://HOST:10001), or on one started here with --jobs "
-                        "CPUs (local); needs the cluster extra")
-    p.add_argument("--no-plots", action="store_true")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_runner_args(p)
     add_config_args(p, shorthands=False)
     p.set_defaults(func=cmd_experiment)
 
@@ -860,12 +865,7 @@ def _simulation_commands(sub: Any) -> None:
     p.add_argument("--stale", action="store_true",
                    help="only the tables that docs/results does not hold as today's program "
                         "would make them")
-    p.add_argument("--jobs", type=_positive_int, default=1,
-                   help="worker processes running runs side by side (vamppi experiment)")
-    p.add_argument("--cluster", metavar="ADDRESS",
-                   help="run on the Ray cluster at ADDRESS, or `local` (vamppi experiment)")
-    p.add_argument("--no-plots", action="store_true")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_runner_args(p)
     p.add_argument("--json", action="store_true", help="JSON rows, each with its command")
     p.set_defaults(func=cmd_tables)
 
