@@ -422,10 +422,9 @@ def cmd_experiment(args: argparse.Namespace, cfg: Config) -> int:
 def cmd_tables(args: argparse.Namespace, cfg: Config) -> int:
     """The tables of record (deploy/sim/tables.py): their state under --root, or with --run
     the named (or, with --stale, the out-of-date) ones made into it, one after another."""
-    from deploy.analysis.summary import write_summary
     from deploy.sim.cluster import ClusterError, on_cluster
-    from deploy.sim.experiment import ExperimentError, expand_scenarios, experiment, read_runs
-    from deploy.sim.tables import RESULTS_DIR, select, status_markdown, table_state
+    from deploy.sim.experiment import ExperimentError, read_runs
+    from deploy.sim.tables import RESULTS_DIR, make_table, select, status_markdown, table_state
     if not Path("common/scenarios").is_dir():
         print("vamppi tables: run it from the repository root (the tables name their "
               "scenario files from there)", file=sys.stderr)
@@ -445,13 +444,11 @@ def cmd_tables(args: argparse.Namespace, cfg: Config) -> int:
         _interrupt_on_sigterm()
         runner = on_cluster(args.cluster, args.jobs) if args.cluster else None
         for t in tables:
-            t_cfg, out = t.config(), root / t.name
-            print(f"vamppi tables: {t.name} into {out}: {t.command()}", file=sys.stderr)
+            print(f"vamppi tables: {t.name} into {root / t.name}: {t.command()}",
+                  file=sys.stderr)
             try:
-                runs = experiment(t_cfg, expand_scenarios(list(t.scenarios)),
-                                  list(t.controllers), [t.samples], t.runs, t.seed, out,
-                                  progress=not args.quiet, jobs=args.jobs, runner=runner)
-                write_summary(t_cfg, runs, out, plots=not args.no_plots)
+                make_table(t, root, progress=not args.quiet, jobs=args.jobs, runner=runner,
+                           plots=not args.no_plots)
             except (ExperimentError, ClusterError) as exc:
                 print(f"vamppi tables: {t.name}: {exc}", file=sys.stderr)
                 return 2

@@ -20,7 +20,14 @@ from typing import Any
 
 from common.config import Config, load_config, preset_overrides
 from common.scenarios import resolve_layout
-from deploy.sim.experiment import KEY_FIELDS, config_digest, expand_scenarios, run_layout
+from deploy.sim.experiment import (
+    KEY_FIELDS,
+    Runner,
+    config_digest,
+    expand_scenarios,
+    experiment,
+    run_layout,
+)
 
 RESULTS_DIR = Path(__file__).resolve().parents[2] / "docs" / "results"
 CONTROLLERS = ("va", "deterministic", "prescient")
@@ -144,6 +151,19 @@ def table_state(table: Table, records: Iterable[dict[str, Any]]) -> TableState:
         wrong += run_layout(r) != resolve_layout(r["scenario"], cfg.episode.layout)
     return TableState(table, config_digest(cfg), found, tuple(sorted(digests)), extra, wrong,
                       wall / 3600.0)
+
+
+def make_table(table: Table, root: Path, progress: bool = True, jobs: int = 1,
+               runner: Runner | None = None, plots: bool = False) -> list[dict[str, Any]]:
+    """Run what `root / table.name` lacks of the table (an experiment: resumable; a
+    directory of another configuration is refused) and write its summary there."""
+    from deploy.analysis.summary import write_summary
+    cfg, out = table.config(), root / table.name
+    runs = experiment(cfg, expand_scenarios(list(table.scenarios)), list(table.controllers),
+                      [table.samples], table.runs, table.seed, out, progress=progress,
+                      jobs=jobs, runner=runner)
+    write_summary(cfg, runs, out, plots=plots)
+    return runs
 
 
 def select(names: Iterable[str]) -> list[Table]:
