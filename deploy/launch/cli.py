@@ -14,6 +14,7 @@
     vamppi reveal DIR        when each hidden obstacle was first seen, and could it stop
     vamppi collisions DIR... what each collision was on, and how long the map had shown it
     vamppi timeouts DIR...   how each run that timed out ended: standing (since when) or driving
+    vamppi near-goal DIR...  runs split by a hidden obstacle near the goal, successes compared
 
 Every command takes `--config FILE` and `--set section.key=value` (repeatable). A bus
 command (health, record, replay, view, swap) given no `--connect` connects to the router
@@ -24,7 +25,7 @@ Where each command's code is: up (deploy/launch/up.py), swap (launch/swap.py), c
 (recording/record.py), replay, timing, export-foxglove, view (recording/replay.py,
 timing.py, foxglove.py, view.py); run (sim/runner.py), experiment (sim/experiment.py, its
 summary analysis/summary.py), tables (sim/tables.py), scenario generate and set
-(sim/generate.py); reveal, collisions, timeouts, plans (analysis/); bench WHAT
+(sim/generate.py); reveal, collisions, timeouts, near-goal, plans (analysis/); bench WHAT
 (bench/main.py).
 """
 
@@ -639,6 +640,24 @@ def cmd_timeouts(args: argparse.Namespace, cfg: Config) -> int:
     return 0
 
 
+def cmd_near_goal(args: argparse.Namespace, cfg: Config) -> int:
+    """One or more experiments' runs split by whether a hidden obstacle stands near the
+    goal (deploy/analysis/neargoal.py): one table over all of them."""
+    from deploy.analysis.neargoal import split, table
+    rows: dict[str, list] = {}
+    for given in args.runs:
+        _, run_cfg, runs = experiment_runs(args, given, cfg)
+        rows.setdefault(run_cfg.mapper.resolution_m, []).extend(runs)
+    if len(rows) != 1:
+        print("vamppi near-goal: the experiments map at different resolutions; give them "
+              "one at a time", file=sys.stderr)
+        return 2
+    (runs,) = rows.values()
+    out = split(run_cfg, runs, args.within)
+    print(json.dumps(out, indent=1) if args.json else table(out, args.within))
+    return 0
+
+
 def cmd_view(args: argparse.Namespace, cfg: Config) -> int:
     """Serve the bus live to Foxglove until Ctrl-C / SIGTERM / --duration / the parent's
     death (deploy/recording/view.py)."""
@@ -919,6 +938,18 @@ def _analysis_commands(sub: Any) -> None:
     p.add_argument("--json", action="store_true", help="JSON rows instead of a table")
     add_config_args(p, shorthands=False)
     p.set_defaults(func=cmd_timeouts)
+
+    p = sub.add_parser("near-goal", help="runs split by whether a hidden obstacle stands "
+                                         "near the goal, successes compared")
+    p.add_argument("runs", nargs="+",
+                   help="experiments' runs.jsonl (or their directories): one table over all")
+    p.add_argument("--within", type=float, default=12.0, metavar="M",
+                   help="a hidden obstacle's footprint nearer the goal than this counts as "
+                        "near (default 12)")
+    p.add_argument("--controller", dest="only", help="only these controllers (a,b)")
+    p.add_argument("--json", action="store_true", help="JSON rows instead of a table")
+    add_config_args(p, shorthands=False)
+    p.set_defaults(func=cmd_near_goal)
 
 
 def _tool_commands(sub: Any) -> None:
