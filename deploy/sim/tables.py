@@ -110,15 +110,12 @@ class TableState:
     """What a table's directory holds against its entry."""
     table: Table
     digest: str                 # the digest today's program gives the entry's configuration
+    want: int                   # runs in the entry's grid
     found: int                  # records of the entry's grid
     digests: tuple[str, ...]    # the records' digests
     extra: int                  # records outside the grid
     wrong_layout: int           # records of the grid on another layout than the entry's
     wall_h: float               # the grid's records' wall time, summed: hours of one worker
-
-    @property
-    def want(self) -> int:
-        return len(self.table.keys())
 
     @property
     def state(self) -> str:
@@ -149,8 +146,8 @@ def table_state(table: Table, records: Iterable[dict[str, Any]]) -> TableState:
         wall += float(r.get("wall_time_s") or 0.0)
         digests.add(r.get("config_digest", "none"))
         wrong += run_layout(r) != resolve_layout(r["scenario"], cfg.episode.layout)
-    return TableState(table, config_digest(cfg), found, tuple(sorted(digests)), extra, wrong,
-                      wall / 3600.0)
+    return TableState(table, config_digest(cfg), len(keys), found, tuple(sorted(digests)),
+                      extra, wrong, wall / 3600.0)
 
 
 def make_table(table: Table, root: Path, progress: bool = True, jobs: int = 1,
