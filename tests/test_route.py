@@ -81,6 +81,24 @@ def detour(p, mean, variance, goal):
                                    jnp.zeros(2, jnp.float32), RES, jnp.asarray(goal, jnp.float32)))
 
 
+def test_the_empty_field_is_relaxs_fixed_point_bit_for_bit():
+    """empty_field sweeps in place; its field is relax's, swept from the target to
+    convergence, to the bit (every route, and so every table, depends on it)."""
+    m = route._margin(RP)
+    size, c, r = 2 * (N + m) - 1, N + m - 1, route._reach(RP)
+    target = route.target_cells(RP, size, (c, c), np)
+    ones = np.ones((size, size))
+    edges = route.edge_costs(RP, ones, ones, np)
+    vp = np.full((route.HEADINGS, size + 2 * r, size + 2 * r), np.inf)
+    vp[:, r:-r, r:-r] = np.where(target, 0.0, np.inf)
+    while not np.array_equal(new := np.minimum(vp[:, r:-r, r:-r],
+                                               route.relax(RP, vp, edges, target, np)),
+                             vp[:, r:-r, r:-r]):
+        vp[:, r:-r, r:-r] = new
+    assert route.empty_field.__wrapped__(RP, N).tobytes() == \
+        vp[:, r:-r, r:-r].astype(np.float32).tobytes()
+
+
 def test_the_empty_lattices_field_is_dijkstras_and_open_ground_has_no_detour():
     np.testing.assert_allclose(route.empty_field(RP, N), open_ground(), rtol=2e-6)
     # on open ground none, but where a pose faces the map's edge too near to turn back
