@@ -176,7 +176,7 @@ def empty_field(p: RouteParams, n: int) -> np.ndarray:
     v = vp[:, r:-r, r:-r]
     v[...] = np.where(target, 0.0, np.inf)
     # relax's sweep, min(v, relax(p, vp, edges, target, np)), in place: the same sums and
-    # minima (so the same bits; tests/test_route.py), 1.7-1.9 times as fast without
+    # minima (so the same bits; tests/test_route.py), 1.4-1.9 times as fast without
     # its temporaries. Every process that plans with the route pays it once, at its start
     new, tmp = np.empty_like(v), np.empty((size, size))
     while True:
