@@ -85,7 +85,7 @@ def planner_case(cfg: Config, controller: str, samples: int, inputs: tuple,
     state = mppi.initial_state(params, 0)
     args = (state, *(jnp.asarray(a) for a in (x0, u0, goal, mean, var, origin)))
     t0 = time.perf_counter()
-    compiled = mppi.solver(params).lower(*args, resolution=res).compile()
+    compiled = mppi.jitted(params).lower(*args, resolution=res).compile()
     compile_s = time.perf_counter() - t0
     mem = compiled.memory_analysis()
     mem_mb = ((mem.argument_size_in_bytes + mem.output_size_in_bytes + mem.temp_size_in_bytes)
