@@ -95,7 +95,13 @@ def _turn_then_straight(px: Any, py: Any, r: float, xp: Any) -> Any:
     return xp.where(d2 >= r * r, r * theta + t, xp.inf)
 
 
-def _turn_then_turn(px: Any, py: Any, r: float, reach: float, xp: Any, n: int = 17) -> Any:
+# the second arc's centre distances `_turn_then_turn` tries (the path it finds is up to
+# 1.12 of their spacing, 2 reach / (TURN_DISTANCES - 1), long: tests/test_geometry.py)
+TURN_DISTANCES = 17
+
+
+def _turn_then_turn(px: Any, py: Any, r: float, reach: float, xp: Any,
+                    n: int = TURN_DISTANCES) -> Any:
     """Length of a right arc then a left arc until it first comes within `reach` of
     (px, py) (`reach` = 0: until it reaches the point), inf where no such path exists.
     The second arc's centre lies 2 r from the right circle's centre (0, -r) and, for

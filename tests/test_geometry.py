@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.geometry import dubins_to_point, goal_path_length, turning_radius
+from common.geometry import TURN_DISTANCES, dubins_to_point, goal_path_length, turning_radius
 
 H = 0.02                         # the reference's step along a path, m
 
@@ -60,10 +60,11 @@ def test_goal_path_length_matches_the_walked_paths_on_fresh_points():
         got = float(goal_path_length(dx, dy, yaw, r, reach))
         seen.add(kind)
         # the reference overshoots by up to a step; two arcs: an upper bound, for the
-        # second arc's centre is tried at 17 distances 2 reach / 16 apart; against 801 of
-        # them it is at most 1.12 of those steps longer (0.279 m at reach 2, 0.065 m at 0.5;
-        # 800,000 and 400,000 uniform points; 0.3 % of points at reach 2 over 0.09 m)
-        high = 1.12 * 2.0 * reach / 16 if kind == "arc, arc" else 1e-6
+        # second arc's centre is tried at TURN_DISTANCES (17) distances; against 801 of
+        # them it is at most 1.12 of their spacing longer (0.279 m at reach 2, 0.065 m at
+        # 0.5; 800,000 and 400,000 uniform points; 0.3 % of points at reach 2 over 0.09 m)
+        spacing = 2.0 * reach / (TURN_DISTANCES - 1)
+        high = 1.12 * spacing if kind == "arc, arc" else 1e-6
         assert -2.0 * H <= got - ref <= high, (seed, px, py, yaw, reach, kind, got, ref)
         assert got >= np.hypot(px, py) - 1e-9
     assert seen - {"inside"}, seed
