@@ -5,11 +5,14 @@ from __future__ import annotations
 import json
 import re
 import shlex
+import subprocess
+import sys
 from pathlib import Path
+
+import pytest
 
 from deploy.launch.cli import build_parser, config_from_args
 from deploy.launch.up import summary_template
-from deploy.sim.runner import run_episode
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -23,21 +26,26 @@ def _example(text: str, command: str) -> tuple[list[str], dict]:
     return shlex.split(m.group(1)), json.loads(m.group(2))
 
 
+@pytest.mark.integration
 def test_readme_up_example_is_what_up_prints():
-    """The README's `vamppi up` line: the keys `up` prints, and the episode's outcome and
-    times as the in-process reference gives them (the bus pipeline in lockstep gives the
-    same trajectory bit for bit: test_pipeline)."""
+    """The README's `vamppi up` line, run: the keys it prints, the episode's outcome and
+    times, no restart, its router on a TLS endpoint it names, exit status 0."""
     argv, shown = _example((ROOT / "README.md").read_text(), "up")
-    args = build_parser().parse_args(argv)
-    cfg = config_from_args(args)
+    cfg = config_from_args(build_parser().parse_args(argv))
     assert set(shown) == set(summary_template(cfg))
-    assert {k: shown[k] for k in ("scenario", "controller", "samples", "seed")} == {
-        "scenario": cfg.episode.scenario, "controller": cfg.planner.controller,
-        "samples": cfg.planner.samples, "seed": cfg.episode.seed}
-    result = run_episode(cfg).summary(cfg)
-    assert (shown["outcome"], shown["time_to_goal_s"], shown["sim_time_s"]) == (
-        result["outcome"], result["time_to_goal_s"], result["sim_time_s"])
-    assert shown["restarts"] == {} and shown["failure"] is None
+    r = subprocess.run([sys.executable, "-m", "deploy", *argv], capture_output=True,
+                       text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    got = json.loads(r.stdout.strip().splitlines()[-1])
+    assert set(got) == set(shown)
+    same = ("scenario", "controller", "samples", "seed", "outcome", "time_to_goal_s",
+            "sim_time_s", "restarts", "failure")
+    assert {k: got[k] for k in same} == {k: shown[k] for k in same}
+    assert (got["scenario"], got["controller"], got["samples"], got["seed"]) == (
+        cfg.episode.scenario, cfg.planner.controller, cfg.planner.samples, cfg.episode.seed)
+    assert got["outcome"] == "success" and got["restarts"] == {} and got["failure"] is None
+    assert got["router"].startswith("tls/localhost:") and f"router on {got['router']}" in \
+        r.stderr
 
 
 def test_make_demo_is_the_episode_the_docs_and_bench_view_name():

@@ -1,6 +1,5 @@
 """The whole pipeline: services as real subprocesses on a real Zenoh router, lockstep."""
 
-import json
 import os
 import signal
 import subprocess
@@ -53,45 +52,21 @@ def bus_episode(overrides, timeout_s=300.0):
     return np.array(list(ticks.values())), outcome[0]
 
 
-def test_lockstep_is_bit_identical_across_runs_and_equals_the_in_process_runner():
+def test_lockstep_is_bit_identical_across_runs_and_scenario_files_and_in_process(tmp_path):
+    """Two bus episodes, one on a built-in scenario and one on a copy of its file moved
+    elsewhere (every service loads that file): the same trajectory as each other and as
+    the in-process runner, bit for bit."""
+    from common.scenarios import BUILTINS
+    world = tmp_path / "elsewhere.toml"
+    world.write_text(BUILTINS["open-field"][1].read_text())
     ref = run_episode(load_config(overrides=SHORT))
     a, ev_a = bus_episode(SHORT)
-    b, ev_b = bus_episode(SHORT)
+    b, ev_b = bus_episode([*SHORT[:2], f'episode.scenario="{world}"'])
     assert ev_a.kind == ev_b.kind == ref.outcome
     assert a.shape == ref.trajectory.shape == b.shape
     assert a.tobytes() == b.tobytes()
     assert a.tobytes() == ref.trajectory.tobytes()
     assert a[-1, 4] > ref.trajectory[0, 4] + 1.0      # it moved
-
-
-def test_the_bus_pipeline_runs_a_scenario_file_as_the_in_process_runner_does(tmp_path):
-    """Every service loads the same file (here a copy of a built-in's, moved): the same
-    trajectory as in-process, bit for bit."""
-    from common.scenarios import BUILTINS
-    world = tmp_path / "elsewhere.toml"
-    world.write_text(BUILTINS["open-field"][1].read_text())
-    over = [*SHORT[:2], f'episode.scenario="{world}"']
-    ref = run_episode(load_config(overrides=over))
-    got, ev = bus_episode(over)
-    assert ev.kind == ref.outcome
-    assert got.tobytes() == ref.trajectory.tobytes()
-    assert got[-1, 4] > got[0, 4] + 1.0               # it moved
-
-
-def test_vamppi_up_reaches_the_goal_and_prints_the_summary():
-    r = subprocess.run([sys.executable, "-m", "deploy", "up", "--scenario", "open-field",
-                        "--samples", "256", "--clock", "lockstep", "--seed", "1"],
-                       capture_output=True, text=True, timeout=600)
-    last = json.loads(r.stdout.strip().splitlines()[-1])
-    assert set(last) == {"scenario", "controller", "samples", "seed", "outcome",
-                         "time_to_goal_s", "sim_time_s", "wall_time_s", "restarts", "failure",
-                         "router"}
-    assert last["router"].startswith("tls/localhost:") and f"router on {last['router']}" in \
-        r.stderr
-    assert last["outcome"] == "success", r.stderr[-3000:]
-    assert last["restarts"] == {} and last["failure"] is None
-    assert r.returncode == 0
-    assert last["samples"] == 256 and last["seed"] == 1 and last["time_to_goal_s"] < 15
 
 
 def _processes_with(marker: str) -> list[int]:
