@@ -44,8 +44,8 @@ def run(out, runs, extra=()):
 def serial(tmp_path_factory):
     """The in-process runs that the other wirings must give: one run of each controller
     (no plots), a torn last line as after a crash mid-write, then resumed to two runs each
-    (with plots). Made once for the test run, whichever worker (pytest-xdist) asks first.
-    (directory, the first runs, the first summary.md)"""
+    (with plots). Made once for the test run, kept on disk, by the one worker (pytest-xdist)
+    that runs the tests in its group. (directory, the first runs, the first summary.md)"""
     base = tmp_path_factory.getbasetemp()
     out = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "serial-experiment"
     with open(out.with_suffix(".lock"), "w") as lock:
@@ -66,6 +66,7 @@ def serial(tmp_path_factory):
     return out, first, first_summary
 
 
+@pytest.mark.xdist_group("serial")   # one worker: the other never waits
 def test_small_experiment_records_are_complete_and_resumable(tmp_path, serial):
     out = tmp_path / "exp"
     shutil.copytree(serial[0], out)
@@ -180,6 +181,7 @@ def records(out):
             for x in read_runs(out / "runs.jsonl")}
 
 
+@pytest.mark.xdist_group("serial")   # one worker: the other never waits
 def test_worker_processes_give_the_records_of_one_process(tmp_path, serial):
     """--jobs 2: the runs spread over two pinned worker processes, the parent writing their
     records, are the in-process runs bit for bit (all but the solve and wall times)."""
@@ -205,6 +207,7 @@ def _ray_tasks():
     return found
 
 
+@pytest.mark.xdist_group("serial")   # one worker: the other never waits
 def test_a_local_ray_cluster_gives_the_records_of_one_process_though_a_worker_dies(
         tmp_path, serial):
     """--cluster local --jobs 2: the runs as Ray tasks on two workers, one of them killed
