@@ -94,12 +94,13 @@ def code_digest() -> str:
 class Traced:
     """`fn` (jitted, positional array arguments) traced once per argument signature per
     code digest, on disk: the first process exports it into `cache_dir()/traced`, the
-    next ones deserialize it. Either way the program runs as `jax.jit(exported.call)`, so
-    every process runs the same compiled program (bit for bit the one `fn` compiles to:
-    tests/test_compile_cache.py). `salt`: what `fn` bakes in besides its arguments (its
-    static parameters, the machine facts it reads while tracing); `custom_calls`: the FFI
-    targets it may call, registered by whoever computed `salt`. With the cache off, `fn`
-    itself runs. A file that does not deserialize is traced again, with a warning."""
+    next ones deserialize it. Either way the program runs as the exported call, jitted with
+    its arguments pinned (`_pinned`), so every process runs the same compiled program (bit
+    for bit the one `fn` compiles to: tests/test_compile_cache.py). `salt`: what `fn`
+    bakes in besides its arguments (its static parameters, the machine facts it reads
+    while tracing); `custom_calls`: the FFI targets it may call, registered by whoever
+    computed `salt`. With the cache off, `fn` itself runs. A file that does not
+    deserialize is traced again, with a warning."""
 
     def __init__(self, name: str, fn: Callable, salt: str, custom_calls: tuple[str, ...] = ()):
         self.name, self.fn, self.salt, self.custom_calls = name, fn, salt, custom_calls
