@@ -1,6 +1,5 @@
 """A small lockstep experiment: records complete and valid, resumable, plots written."""
 
-import fcntl
 import json
 import os
 import shutil
@@ -9,6 +8,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import pytest
 
@@ -40,39 +40,36 @@ def run(out, runs, extra=()):
         capture_output=True, text=True, timeout=900)
 
 
+class Serial(NamedTuple):
+    out: Path                 # the directory: two runs of each controller, resumed
+    first: list               # the records after one run of each
+    first_summary: str        # summary.md after one run of each
+
+
 @pytest.fixture(scope="session")
 def serial(tmp_path_factory):
     """The in-process runs that the other wirings must give: one run of each controller
     (no plots), a torn last line as after a crash mid-write, then resumed to two runs each
-    (with plots). Made once for the test run, kept on disk, by the one worker (pytest-xdist)
-    that runs the tests in its group. (directory, the first runs, the first summary.md)"""
-    base = tmp_path_factory.getbasetemp()
-    out = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "serial-experiment"
-    with open(out.with_suffix(".lock"), "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        made = out.with_suffix(".json")
-        if not made.exists():
-            shutil.rmtree(out, ignore_errors=True)
-            r = run(out, 1, ["--no-plots"])
-            assert r.returncode == 0, r.stderr[-2000:]
-            first = read_runs(out / "runs.jsonl")
-            first_summary = (out / "summary.md").read_text()
-            with (out / "runs.jsonl").open("a") as f:
-                f.write('{"scenario": "alleyway", "contr')
-            r = run(out, 2)
-            assert r.returncode == 0, r.stderr[-2000:]
-            made.write_text(json.dumps([first, first_summary]))
-        first, first_summary = json.loads(made.read_text())
-    return out, first, first_summary
+    (with plots). Its tests share an xdist_group, so that one worker makes it once."""
+    out = tmp_path_factory.mktemp("serial")
+    r = run(out, 1, ["--no-plots"])
+    assert r.returncode == 0, r.stderr[-2000:]
+    first = read_runs(out / "runs.jsonl")
+    first_summary = (out / "summary.md").read_text()
+    with (out / "runs.jsonl").open("a") as f:
+        f.write('{"scenario": "alleyway", "contr')
+    r = run(out, 2)
+    assert r.returncode == 0, r.stderr[-2000:]
+    return Serial(out, first, first_summary)
 
 
 @pytest.mark.xdist_group("serial")   # one worker: the other never waits
 def test_small_experiment_records_are_complete_and_resumable(tmp_path, serial):
     out = tmp_path / "exp"
-    shutil.copytree(serial[0], out)
-    first = serial[1]
+    shutil.copytree(serial.out, out)
+    first = serial.first
     assert len(first) == 3
-    assert "±" not in serial[2].split("\n\n")[0]             # one run: no spread
+    assert "±" not in serial.first_summary.split("\n\n")[0]   # one run: no spread
     # the torn last line was skipped, and resuming added run 2
     runs = read_runs(out / "runs.jsonl")
     assert len(runs) == 6
@@ -188,9 +185,9 @@ def test_worker_processes_give_the_records_of_one_process(tmp_path, serial):
     parallel = tmp_path / "parallel"
     r = run(parallel, 2, ["--no-plots", "--jobs", "2"])
     assert r.returncode == 0, r.stderr[-2000:]
-    a, b = records(serial[0]), records(parallel)
+    a, b = records(serial.out), records(parallel)
     assert len(a) == 6 and a == b
-    assert (parallel / "summary.json").read_text() == (serial[0] / "summary.json").read_text()
+    assert (parallel / "summary.json").read_text() == (serial.out / "summary.json").read_text()
     assert run(tmp_path / "x", 1, ["--jobs", "0"]).returncode == 2
 
 
@@ -233,8 +230,8 @@ def test_a_local_ray_cluster_gives_the_records_of_one_process_though_a_worker_di
             proc.wait(60)
     assert proc.returncode == 0, err[-3000:]
     assert not _alive(busy[0])
-    assert records(out) == records(serial[0])
-    assert (out / "summary.json").read_text() == (serial[0] / "summary.json").read_text()
+    assert records(out) == records(serial.out)
+    assert (out / "summary.json").read_text() == (serial.out / "summary.json").read_text()
     again = subprocess.run(cmd[:-4] + ["--cluster", "ray://nowhere:1", "--jobs", "2"],
                            capture_output=True, text=True, timeout=300)
     assert again.returncode == 0 and "0 run(s) to do" in again.stderr, again.stderr[-2000:]
