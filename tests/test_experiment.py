@@ -46,6 +46,10 @@ class Serial(NamedTuple):
     first_summary: str        # summary.md after one run of each
 
 
+# the tests that read `serial` run on one worker, which makes it once: the other never waits
+SERIAL = pytest.mark.xdist_group("serial")
+
+
 @pytest.fixture(scope="session")
 def serial(tmp_path_factory):
     """The in-process runs that the other wirings must give: one run of each controller
@@ -63,7 +67,7 @@ def serial(tmp_path_factory):
     return Serial(out, first, first_summary)
 
 
-@pytest.mark.xdist_group("serial")   # one worker: the other never waits
+@SERIAL
 def test_small_experiment_records_are_complete_and_resumable(tmp_path, serial):
     out = tmp_path / "exp"
     shutil.copytree(serial.out, out)
@@ -178,7 +182,7 @@ def records(out):
             for x in read_runs(out / "runs.jsonl")}
 
 
-@pytest.mark.xdist_group("serial")   # one worker: the other never waits
+@SERIAL
 def test_worker_processes_give_the_records_of_one_process(tmp_path, serial):
     """--jobs 2: the runs spread over two pinned worker processes, the parent writing their
     records, are the in-process runs bit for bit (all but the solve and wall times)."""
@@ -204,7 +208,7 @@ def _ray_tasks():
     return found
 
 
-@pytest.mark.xdist_group("serial")   # one worker: the other never waits
+@SERIAL
 def test_a_local_ray_cluster_gives_the_records_of_one_process_though_a_worker_dies(
         tmp_path, serial):
     """--cluster local --jobs 2: the runs as Ray tasks on two workers, one of them killed
